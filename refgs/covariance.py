@@ -1,0 +1,100 @@
+"""Stage 1: quaternion + log-scale -> 3D covariance, forward and backward.
+
+Spec: docs/spec/stages.md, clauses CNV-04, CNV-05, CNV-06, COV-01, COV-02.
+Derivation of the backward: docs/derivations/covariance.md.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .constants import QUAT_RESCALE_EPS
+
+
+def normalize_quats(quats: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Unit quaternions from raw ones (CNV-05).
+
+    quats (N, 4) (w, x, y, z), every row non-zero (``render`` validates this).
+    Returns ``(q_unit (N,4), norm (N,), scale (N,))`` where ``q_unit = quats * scale / |quats * scale|``;
+    ``scale`` is 1 except for rows with |q| < QUAT_RESCALE_EPS, which are first divided by their
+    largest |component| so that the squared norm cannot underflow.  ``norm`` is |quats| (exact
+    value, computed as |quats * scale| / scale), used by the backward.
+    """
+    q = np.asarray(quats)
+    maxabs = np.max(np.abs(q), axis=-1)
+    tiny = maxabs < QUAT_RESCALE_EPS
+    scale = np.where(tiny, 1.0 / np.where(tiny, maxabs, 1.0), 1.0).astype(q.dtype)
+    qs = q * scale[:, None]
+    ns = np.sqrt(np.sum(qs * qs, axis=-1))
+    return qs / ns[:, None], ns / scale, scale
+
+
+def quat_to_rotmat(q_unit: np.ndarray) -> np.ndarray:
+    """Rotation matrices (N, 3, 3) from unit quaternions (N, 4) (w, x, y, z) (CNV-04)."""
+    w, x, y, z = (q_unit[:, i] for i in range(4))
+    R = np.empty(q_unit.shape[:-1] + (3, 3), dtype=q_unit.dtype)
+    R[:, 0, 0] = 1 - 2 * (y * y + z * z)
+    R[:, 0, 1] = 2 * (x * y - w * z)
+    R[:, 0, 2] = 2 * (x * z + w * y)
+    R[:, 1, 0] = 2 * (x * y + w * z)
+    R[:, 1, 1] = 1 - 2 * (x * x + z * z)
+    R[:, 1, 2] = 2 * (y * z - w * x)
+    R[:, 2, 0] = 2 * (x * z - w * y)
+    R[:, 2, 1] = 2 * (y * z + w * x)
+    R[:, 2, 2] = 1 - 2 * (x * x + y * y)
+    return R
+
+
+def covariance_3d(quats: np.ndarray, log_scales: np.ndarray) -> dict:
+    """Sigma = R S S^T R^T with S = diag(exp(log_scales)), R from the normalised quaternion (COV-01).
+
+    quats (N, 4), log_scales (N, 3)  ->  dict with
+      ``cov3d`` (N, 3, 3) symmetric, ``R`` (N, 3, 3), ``scales`` (N, 3), ``q_unit`` (N, 4),
+      ``q_norm`` (N,) -- the last four are what the backward needs.
+    """
+    q_unit, q_norm, _ = normalize_quats(quats)
+    R = quat_to_rotmat(q_unit)
+    scales = np.exp(log_scales)
+    M = R * scales[:, None, :]                      # M = R S (columns scaled)
+    cov = M @ np.swapaxes(M, -1, -2)
+    cov = 0.5 * (cov + np.swapaxes(cov, -1, -2))    # exact symmetry
+    return {"cov3d": cov, "R": R, "scales": scales, "q_unit": q_unit, "q_norm": q_norm}
+
+
+def rotmat_to_quat_vjp(q_unit: np.ndarray, v_R: np.ndarray) -> np.ndarray:
+    """dL/dq_unit (N, 4) from dL/dR (N, 3, 3) through ``quat_to_rotmat`` (COV-02)."""
+    w, x, y, z = (q_unit[:, i] for i in range(4))
+    g = v_R
+    v_w = 2 * (-z * g[:, 0, 1] + y * g[:, 0, 2] + z * g[:, 1, 0] - x * g[:, 1, 2]
+               - y * g[:, 2, 0] + x * g[:, 2, 1])
+    v_x = 2 * (y * g[:, 0, 1] + z * g[:, 0, 2] + y * g[:, 1, 0] - 2 * x * g[:, 1, 1]
+               - w * g[:, 1, 2] + z * g[:, 2, 0] + w * g[:, 2, 1] - 2 * x * g[:, 2, 2])
+    v_y = 2 * (-2 * y * g[:, 0, 0] + x * g[:, 0, 1] + w * g[:, 0, 2] + x * g[:, 1, 0]
+               + z * g[:, 1, 2] - w * g[:, 2, 0] + z * g[:, 2, 1] - 2 * y * g[:, 2, 2])
+    v_z = 2 * (-2 * z * g[:, 0, 0] - w * g[:, 0, 1] + x * g[:, 0, 2] + w * g[:, 1, 0]
+               - 2 * z * g[:, 1, 1] + y * g[:, 1, 2] + x * g[:, 2, 0] + y * g[:, 2, 1])
+    return np.stack([v_w, v_x, v_y, v_z], axis=-1)
+
+
+def normalize_quats_vjp(q_unit: np.ndarray, q_norm: np.ndarray, v_q_unit: np.ndarray) -> np.ndarray:
+    """dL/dq from dL/d(q/|q|): (I - u u^T) v / |q| (COV-02)."""
+    proj = v_q_unit - q_unit * np.sum(q_unit * v_q_unit, axis=-1, keepdims=True)
+    return proj / q_norm[:, None]
+
+
+def covariance_3d_backward(fwd: dict, v_cov3d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Backward of :func:`covariance_3d` (COV-02).
+
+    fwd      the dict returned by the forward
+    v_cov3d  (N, 3, 3) dL/dSigma, entries treated as independent (any matrix; only its symmetric
+             part matters because Sigma is symmetric)
+    returns  (v_quats (N, 4), v_log_scales (N, 3))
+    """
+    R, s = fwd["R"], fwd["scales"]
+    M = R * s[:, None, :]
+    v_M = (v_cov3d + np.swapaxes(v_cov3d, -1, -2)) @ M   # Sigma = M M^T
+    v_R = v_M * s[:, None, :]                           # M = R diag(s)
+    v_s = np.sum(v_M * R, axis=-2)
+    v_log_scales = v_s * s                              # s = exp(log s)
+    v_q_unit = rotmat_to_quat_vjp(fwd["q_unit"], v_R)
+    v_quats = normalize_quats_vjp(fwd["q_unit"], fwd["q_norm"], v_q_unit)
+    return v_quats, v_log_scales
