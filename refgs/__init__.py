@@ -17,7 +17,8 @@ from .covariance import covariance_3d, covariance_3d_backward, quat_to_rotmat, n
 from .projection import project_gaussians, project_gaussians_backward, world_to_camera, tile_rectangles  # noqa: E402
 from .sh import eval_sh_colors, eval_sh_colors_backward, sh_basis, num_sh_coeffs  # noqa: E402
 from .rasterize import build_tile_lists, composite, composite_backward  # noqa: E402
-from .render import render, render_backward, validate_inputs  # noqa: E402
+from .render import render, render_backward, validate_inputs, validate_gaussians  # noqa: E402
+from .methods.flat_minima import sap_offsets  # noqa: E402
 
 __all__ = [
     "Camera", "Gaussians", "Gradients", "RenderConfig", "RenderOutput",
@@ -26,5 +27,5 @@ __all__ = [
     "project_gaussians", "project_gaussians_backward", "world_to_camera", "tile_rectangles",
     "eval_sh_colors", "eval_sh_colors_backward", "sh_basis", "num_sh_coeffs",
     "build_tile_lists", "composite", "composite_backward",
-    "render", "render_backward", "validate_inputs",
+    "render", "render_backward", "validate_inputs", "validate_gaussians", "sap_offsets",
 ]

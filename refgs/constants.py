@@ -40,10 +40,11 @@ SH_MAX_DEGREE = 3
 #: gsplat rendering.py:525 ``clamp_min(colors + 0.5, 0.0)``).  [SH-03]
 SH_COLOR_OFFSET = 0.5
 
-#: Quaternions with 0 < |q| below this are first divided by their largest |component| and then
-#: normalised, so that |q|**2 cannot underflow.  Our choice (no upstream equivalent: both
-#: upstreams assume |q| well away from 0; gsplat #248).  [CNV-05]
-QUAT_RESCALE_EPS = 1e-100
+
+#: Log-scales above this fraction of log(largest float of the dtype) are rejected by validation:
+#: Sigma ~ exp(2 log_s) times (f/z)^2 must stay finite (our choice; ~177 in float64, ~22 in
+#: float32, i.e. scales up to 1e77 / 3.6e9 world units).  [API-03]
+LOG_SCALE_MAX_FRACTION = 0.25
 
 #: A world-to-camera matrix is accepted as rigid when max|R R^T - I| and |det R - 1| are below
 #: this (our choice: loose enough for float32 poses written by COLMAP, tight enough to reject a

@@ -7,25 +7,22 @@ from __future__ import annotations
 
 import numpy as np
 
-from .constants import QUAT_RESCALE_EPS
-
 
 def normalize_quats(quats: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Unit quaternions from raw ones (CNV-05).
 
     quats (N, 4) (w, x, y, z), every row non-zero (``render`` validates this).
-    Returns ``(q_unit (N,4), norm (N,), scale (N,))`` where ``q_unit = quats * scale / |quats * scale|``;
-    ``scale`` is 1 except for rows with |q| < QUAT_RESCALE_EPS, which are first divided by their
-    largest |component| so that the squared norm cannot underflow.  ``norm`` is |quats| (exact
-    value, computed as |quats * scale| / scale), used by the backward.
+    Every row is first divided by its largest |component| (exact up to one rounding, and immune
+    to underflow of |q|**2 for tiny or subnormal q and to overflow for huge q, in either dtype),
+    then normalised.  Returns ``(q_unit (N,4), norm (N,), maxabs (N,))`` with ``norm`` = |q|
+    (computed as |q / maxabs| * maxabs), used by the backward.
     """
     q = np.asarray(quats)
     maxabs = np.max(np.abs(q), axis=-1)
-    tiny = maxabs < QUAT_RESCALE_EPS
-    scale = np.where(tiny, 1.0 / np.where(tiny, maxabs, 1.0), 1.0).astype(q.dtype)
-    qs = q * scale[:, None]
+    safe = np.where(maxabs > 0, maxabs, 1).astype(q.dtype)
+    qs = q / safe[:, None]
     ns = np.sqrt(np.sum(qs * qs, axis=-1))
-    return qs / ns[:, None], ns / scale, scale
+    return qs / ns[:, None], ns * safe, safe
 
 
 def quat_to_rotmat(q_unit: np.ndarray) -> np.ndarray:

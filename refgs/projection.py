@@ -85,15 +85,26 @@ def project_gaussians(means: np.ndarray, cov3d: np.ndarray, opacities: np.ndarra
     a = cov2d_m[:, 0, 0] + eps                      # PRJ-04 dilation
     b = 0.5 * (cov2d_m[:, 0, 1] + cov2d_m[:, 1, 0])
     c = cov2d_m[:, 1, 1] + eps
-    det = a * c - b * b
-    det_ok = (det > 0) if profile.det_cull_nonpositive else (det != 0)
-    det_safe = np.where(det_ok, det, dtype.type(1.0))
-    conics = np.stack([c / det_safe, -b / det_safe, a / det_safe], axis=-1)
+    # conic = inverse of [[a, b], [b, c]], computed on the entries divided by m = max(a, c) so
+    # that det and the eigenvalue term cannot overflow for huge splats (HARD-11)
+    m = np.maximum(np.abs(a), np.abs(c))
+    m = np.where(m > 0, m, dtype.type(1.0))
+    a1, b1, c1 = a / m, b / m, c / m
+    det1 = a1 * c1 - b1 * b1                          # det / m^2
+    det_ok = (det1 > 0) if profile.det_cull_nonpositive else (det1 != 0)
+    det1_safe = np.where(det_ok, det1, dtype.type(1.0))
+    md = m * det1_safe                                # det / m
+    conics = np.stack([c1 / md, -b1 / md, a1 / md], axis=-1)
+    with np.errstate(over="ignore"):
+        det = det1_safe * m * m                       # may be inf for huge splats; only reported
 
     # PRJ-08: gsplat's antialiasing compensation sqrt(max(0, det0 / det))
     if antialiased:
-        det0 = (a - eps) * (c - eps) - b * b
-        comp = np.sqrt(np.maximum(dtype.type(0.0), det0 / det_safe))
+        e1 = eps / m
+        det0_1 = (a1 - e1) * (c1 - e1) - b1 * b1      # det0 / m^2
+        comp = np.sqrt(np.maximum(dtype.type(0.0), det0_1 / det1_safe))
+        with np.errstate(over="ignore"):
+            det0 = det0_1 * m * m
     else:
         det0 = None
         comp = np.ones(n, dtype=dtype)
@@ -101,9 +112,12 @@ def project_gaussians(means: np.ndarray, cov3d: np.ndarray, opacities: np.ndarra
 
     # PRJ-05: radius and tile rectangle
     if profile.radius_rule == "eig":
-        mid = 0.5 * (a + c)
-        lam1 = mid + np.sqrt(np.maximum(dtype.type(profile.eig_floor), mid * mid - det))
-        r = np.ceil(profile.radius_sigma * np.sqrt(np.maximum(lam1, 0)))
+        # lambda_max = mid + sqrt(max(floor, mid^2 - det)), mid = (a + c)/2, in units of m
+        mid1 = 0.5 * (a1 + c1)
+        root = m * np.sqrt(np.maximum(mid1 * mid1 - det1, 0))
+        with np.errstate(over="ignore"):
+            lam1 = m * mid1 + np.maximum(np.sqrt(dtype.type(profile.eig_floor)), root)
+            r = np.ceil(profile.radius_sigma * np.sqrt(np.maximum(lam1, 0)))
         rx = ry = r
     else:
         o_eff = opacities * comp
@@ -113,8 +127,9 @@ def project_gaussians(means: np.ndarray, cov3d: np.ndarray, opacities: np.ndarra
             with np.errstate(divide="ignore", invalid="ignore"):
                 ext_o = np.sqrt(2.0 * np.log(np.maximum(o_eff, ALPHA_MIN) / ALPHA_MIN))
             extend = np.minimum(extend, ext_o)
-        rx = np.ceil(extend * np.sqrt(np.maximum(a, 0)))
-        ry = np.ceil(extend * np.sqrt(np.maximum(c, 0)))
+        with np.errstate(over="ignore"):
+            rx = np.ceil(extend * np.sqrt(np.maximum(a, 0)))
+            ry = np.ceil(extend * np.sqrt(np.maximum(c, 0)))
         visible &= ~((rx <= 0) & (ry <= 0))
     rx = np.where(visible, rx, 0)
     ry = np.where(visible, ry, 0)
@@ -123,14 +138,17 @@ def project_gaussians(means: np.ndarray, cov3d: np.ndarray, opacities: np.ndarra
         mx, my = means2d[:, 0], means2d[:, 1]
         visible &= ~((mx + rx <= 0) | (mx - rx >= W) | (my + ry <= 0) | (my - ry >= H))
     visible &= has_tiles
-    radii = np.stack([np.where(visible, rx, 0), np.where(visible, ry, 0)], -1).astype(np.int32)
+    # radii saturate at the int32 maximum instead of wrapping (HARD-11)
+    rmax = np.iinfo(np.int32).max
+    radii = np.stack([np.where(visible, np.minimum(np.asarray(rx, np.float64), rmax), 0),
+                      np.where(visible, np.minimum(np.asarray(ry, np.float64), rmax), 0)], -1).astype(np.int32)
     tile_rect[~visible] = 0
 
     return {
         "t": t, "depths": tz, "means2d": means2d, "cov2d": np.stack([a, b, c], -1),
         "conics": conics, "comp": comp, "radii": radii, "visible": visible,
         "tile_rect": tile_rect, "J": J, "cov_cam": cov_cam, "u": u, "v": v,
-        "clamped_x": clamped_x, "clamped_y": clamped_y, "tz_safe": tz_safe, "det": det_safe,
+        "clamped_x": clamped_x, "clamped_y": clamped_y, "tz_safe": tz_safe, "det": det,
         "det0": det0, "eps2d": eps,
     }
 
@@ -182,24 +200,26 @@ def project_gaussians_backward(fwd: dict, camera, v_means2d, v_conics, v_depths,
     fx, fy = dtype.type(camera.fx), dtype.type(camera.fy)
     Rw = np.asarray(camera.world_to_camera, dtype=dtype)[:3, :3]
     t, tz = fwd["t"], fwd["tz_safe"]
-    a, b, c = fwd["cov2d"][:, 0], fwd["cov2d"][:, 1], fwd["cov2d"][:, 2]
-    det = fwd["det"]
+    A, B, C = fwd["conics"][:, 0], fwd["conics"][:, 1], fwd["conics"][:, 2]
     vA, vB, vC = v_conics[:, 0], v_conics[:, 1], v_conics[:, 2]
-    # conic = (c, -b, a) / det with det = a c - b^2
-    d2 = det * det
-    v_a = (-c * c * vA + b * c * vB - b * b * vC) / d2
-    v_b = (2 * b * c * vA - (det + 2 * b * b) * vB + 2 * a * b * vC) / d2
-    v_c = (-b * b * vA + a * b * vB - a * a * vC) / d2
+    # Q = Sigma2D^-1 so dQ = -Q dSigma Q, written entrywise with b counted once; no division by
+    # det^2, which overflows for huge splats (HARD-11)
+    v_a = -(A * A * vA + A * B * vB + B * B * vC)
+    v_b = -(2 * A * B * vA + (A * C + B * B) * vB + 2 * B * C * vC)
+    v_c = -(B * B * vA + B * C * vB + C * C * vC)
     if v_comp is not None and fwd["det0"] is not None:
-        # comp = sqrt(rho2), rho2 = det0 / det with det0 = (a-e)(c-e) - b^2 (PRJ-08)
+        # comp = sqrt(rho2), rho2 = det0 / det, det0 = det(Sigma2D - eps I) (PRJ-08):
+        # d rho2 / da = (1 - rho2) A - eps det(Q), d rho2 / dc = (1 - rho2) C - eps det(Q),
+        # d rho2 / db = 2 (1 - rho2) B
         comp = fwd["comp"]
         live = (comp > 0) & vis
         v_rho2 = np.where(live, v_comp * 0.5 / np.where(live, comp, 1), 0)
         e = fwd["eps2d"]
-        det0 = fwd["det0"]
-        v_a += v_rho2 * ((c - e) * det - det0 * c) / d2
-        v_c += v_rho2 * ((a - e) * det - det0 * a) / d2
-        v_b += v_rho2 * (-2 * b * det + 2 * b * det0) / d2
+        rho2 = comp * comp
+        detQ = A * C - B * B
+        v_a += v_rho2 * ((1 - rho2) * A - e * detQ)
+        v_c += v_rho2 * ((1 - rho2) * C - e * detQ)
+        v_b += v_rho2 * 2 * (1 - rho2) * B
     # the dilation (+eps2d on a and c) passes the gradient straight through.
     V = np.empty((t.shape[0], 2, 2), dtype=dtype)
     V[:, 0, 0], V[:, 1, 1] = v_a, v_c

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import expit
 
-from .constants import RIGID_TOL, Profile, get_profile
+from .constants import LOG_SCALE_MAX_FRACTION, RIGID_TOL, Profile, get_profile
 from .covariance import covariance_3d, covariance_3d_backward
 from .projection import project_gaussians, project_gaussians_backward
 from .rasterize import build_tile_lists, composite, composite_backward
@@ -22,6 +22,14 @@ def _fail(field: str, expected: str, got) -> None:
     raise ValueError(f"{field}: expected {expected}, got {got}")
 
 
+def _as_float_array(field: str, value, expected: str) -> np.ndarray:
+    """``value`` as a float64 array, or ValueError naming ``field`` (non-numeric input)."""
+    try:
+        return np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        _fail(field, expected, repr(value))
+
+
 def resolve_profile(config: RenderConfig) -> Profile:
     """The Profile named by ``config.profile`` (a Profile instance is accepted as is)."""
     if isinstance(config.profile, Profile):
@@ -29,14 +37,10 @@ def resolve_profile(config: RenderConfig) -> Profile:
     return get_profile(config.profile)
 
 
-def validate_inputs(g: Gaussians, camera: Camera, config: RenderConfig) -> None:
-    """Raise ValueError naming the field and what was expected (API-03)."""
+def validate_gaussians(g: Gaussians) -> None:
+    """Raise ValueError naming the field and what was expected (API-03, CNV-05, CNV-11)."""
     if not isinstance(g, Gaussians):
         _fail("gaussians", "a refgs.Gaussians", type(g).__name__)
-    if not isinstance(camera, Camera):
-        _fail("camera", "a refgs.Camera", type(camera).__name__)
-    if not isinstance(config, RenderConfig):
-        _fail("config", "a refgs.RenderConfig", type(config).__name__)
     n = g.means.shape[0] if g.means.ndim == 2 else -1
     shapes = {"means": (n, 3), "log_scales": (n, 3), "quats": (n, 4), "opacity_logits": (n,)}
     for name, shape in shapes.items():
@@ -55,12 +59,26 @@ def validate_inputs(g: Gaussians, camera: Camera, config: RenderConfig) -> None:
             bad = np.argwhere(~np.isfinite(arr))[0]
             _fail(f"Gaussians.{name}", "finite values", f"{arr[tuple(bad)]} at index {tuple(bad)}")
     if n > 0:
+        lim = LOG_SCALE_MAX_FRACTION * np.log(np.finfo(g.log_scales.dtype).max)
+        if np.any(g.log_scales > lim):
+            _fail("Gaussians.log_scales", f"values <= {lim:.1f} (larger scales overflow the covariance "
+                  f"in {g.log_scales.dtype})", float(g.log_scales.max()))
         zero = ~np.any(g.quats != 0, axis=-1)
         if np.any(zero):
             _fail("Gaussians.quats", "non-zero quaternions (w, x, y, z) (CNV-05)",
                   f"a zero quaternion at row {int(np.flatnonzero(zero)[0])}")
+
+
+def validate_inputs(g: Gaussians, camera: Camera, config: RenderConfig) -> None:
+    """Raise ValueError naming the field and what was expected (API-03)."""
+    validate_gaussians(g)
+    if not isinstance(camera, Camera):
+        _fail("camera", "a refgs.Camera", type(camera).__name__)
+    if not isinstance(config, RenderConfig):
+        _fail("config", "a refgs.RenderConfig", type(config).__name__)
+    n = g.means.shape[0]
     # camera
-    W2C = np.asarray(camera.world_to_camera)
+    W2C = _as_float_array("Camera.world_to_camera", camera.world_to_camera, "a finite (4, 4) matrix")
     if W2C.shape != (4, 4) or not np.all(np.isfinite(W2C)):
         _fail("Camera.world_to_camera", "a finite (4, 4) matrix", W2C.shape)
     R = W2C[:3, :3].astype(np.float64)
@@ -68,7 +86,7 @@ def validate_inputs(g: Gaussians, camera: Camera, config: RenderConfig) -> None:
             np.max(np.abs(R @ R.T - np.eye(3))) > RIGID_TOL or abs(np.linalg.det(R) - 1) > RIGID_TOL:
         _fail("Camera.world_to_camera", "a rigid transform [[R, t], [0, 0, 0, 1]] with R a rotation "
               f"(R R^T = I, det R = 1 within {RIGID_TOL})", "a non-rigid matrix")
-    K = np.asarray(camera.K)
+    K = _as_float_array("Camera.K", camera.K, "a finite (3, 3) intrinsics matrix")
     if K.shape != (3, 3) or not np.all(np.isfinite(K)):
         _fail("Camera.K", "a finite (3, 3) intrinsics matrix", K.shape)
     if not (K[0, 0] > 0 and K[1, 1] > 0):
@@ -79,9 +97,12 @@ def validate_inputs(g: Gaussians, camera: Camera, config: RenderConfig) -> None:
             _fail(f"Camera.{name}", "a positive integer", v)
     # config
     resolve_profile(config)
-    bg = np.asarray(config.background, dtype=np.float64)
+    bg = _as_float_array("RenderConfig.background", config.background, "3 finite values")
     if bg.shape != (3,) or not np.all(np.isfinite(bg)):
         _fail("RenderConfig.background", "3 finite values", config.background)
+    if config.sh_degree is not None and (isinstance(config.sh_degree, bool)
+                                         or not isinstance(config.sh_degree, (int, np.integer))):
+        _fail("RenderConfig.sh_degree", "None or an integer in 0..3", repr(config.sh_degree))
     deg = config.active_sh_degree(g.sh.shape[1])
     if not 0 <= deg <= 3:
         _fail("RenderConfig.sh_degree", "an integer in 0..3", config.sh_degree)
@@ -90,7 +111,8 @@ def validate_inputs(g: Gaussians, camera: Camera, config: RenderConfig) -> None:
     if config.antialiased and resolve_profile(config).name != "gsplat":
         _fail("RenderConfig.antialiased", "False unless profile is 'gsplat'", True)
     if config.opacity_scale is not None:
-        s = np.asarray(config.opacity_scale)
+        s = _as_float_array("RenderConfig.opacity_scale", config.opacity_scale,
+                            f"None or ({n},) finite non-negative values")
         if s.shape != (n,) or not np.all(np.isfinite(s)) or np.any(s < 0):
             _fail("RenderConfig.opacity_scale", f"None or ({n},) finite non-negative values", s.shape)
 
@@ -107,6 +129,9 @@ def render(gaussians: Gaussians, camera: Camera, config: RenderConfig | None = N
     g = gaussians
     dt = g.means.dtype
     W, H = int(camera.width), int(camera.height)
+    if config.sh_degree is not None and (isinstance(config.sh_degree, bool)
+                                         or not isinstance(config.sh_degree, (int, np.integer))):
+        _fail("RenderConfig.sh_degree", "None or an integer in 0..3", repr(config.sh_degree))
     deg = config.active_sh_degree(g.sh.shape[1])
 
     cov = covariance_3d(g.quats, g.log_scales)                                  # COV-01

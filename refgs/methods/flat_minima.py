@@ -1,0 +1,177 @@
+"""The paper's flat-minima method: Scale-Adaptive Perturbation, stochastic masks, schedule, clamp,
+periodic reinitialisation.  Reads like the paper's Method section: one function per idea.
+
+Spec: docs/spec/method.md (clauses FM-01..FM-12).  Paper: "Flat Minima Optimization" section,
+eq. (SAP)  x_i' = x_i + delta_i,  delta_i ~ N(0, gamma^2 Sigma_i),  Sigma_i = R_i S_i S_i^T R_i^T;
+eq. (stochastic)  perturbed with probability p;  eq. (schedule)  x_i' = x_i + alpha(t) delta_i,
+alpha(t) = t / T;  Experimental Setup: p_max = 0.3, gamma = 2, reinit every 1000 iterations for
+W = 100 iterations, displacement clamped to the Gaussian's scale.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..covariance import normalize_quats, quat_to_rotmat
+from ..render import validate_gaussians
+from ..types import Gaussians
+
+#: Experimental Setup: "perturbation coefficient gamma = 2"  [FM-01]
+GAMMA = 2.0
+#: Experimental Setup: "perturbation probability p_max = 0.3"  [FM-02]
+P_PERTURB = 0.3
+#: Experimental Setup: reinitialise "every 1,000 iterations"  [FM-06]
+REINIT_INTERVAL = 1000
+#: Experimental Setup: "for W = 100 iterations"  [FM-06]
+REINIT_WINDOW = 100
+
+#: The readings of "the displacement does not exceed the corresponding Gaussian's scale" [FM-04].
+#: With l = R^T delta the displacement in the Gaussian's principal frame:
+#:   "axis"      per principal axis, per component: l_k <- clip(l_k, -s_k, s_k)   (default)
+#:   "box"       per principal axis, direction-preserving: l <- l / max(1, max_k |l_k| / s_k)
+#:   "ellipsoid" inside the 1-sigma ellipsoid, direction-preserving: l <- l / max(1, ||l / s||)
+#:   "norm"      Euclidean length at most ||s||_2, direction-preserving
+#:   "none"      no clamp
+#: Every reading guarantees ||delta|| <= ||s||_2 (tests/test_flat_minima.py::test_clamp_bounds).
+CLAMP_MODES = ("axis", "box", "ellipsoid", "norm", "none")
+DEFAULT_CLAMP = "axis"
+
+
+def magnitude_schedule(t: int, total: int) -> float:
+    """alpha(t) = t / T (paper eq. schedule) [FM-03]; 0 at t = 0, 1 at t = T."""
+    if total <= 0:
+        raise ValueError(f"--iters: expected a positive number of iterations, got {total}")
+    return float(t) / float(total)
+
+
+def perturb_probability(t: int, total: int, p: float = P_PERTURB, ramp: bool = False) -> float:
+    """p, constant by default; with ``ramp`` p(t) = p t / T (DropGaussian's form) [FM-02].
+
+    The paper calls the value p_max but its text and equations ramp only the magnitude
+    (alpha(t) multiplies delta, p stays the probability), so constant p is the default.
+    """
+    return p * magnitude_schedule(t, total) if ramp else p
+
+
+def clamp_displacement(local: np.ndarray, scales: np.ndarray, mode: str = DEFAULT_CLAMP) -> np.ndarray:
+    """Clamp displacements given in each Gaussian's principal frame [FM-04].
+
+    local (N,3) = R^T delta, scales (N,3) = s  ->  clamped (N,3); see CLAMP_MODES.
+    """
+    if mode == "none":
+        return local
+    if mode == "axis":
+        return np.clip(local, -scales, scales)
+    if mode == "box":
+        f = np.max(np.abs(local) / scales, axis=-1, keepdims=True)
+    elif mode == "ellipsoid":
+        f = np.sqrt(np.sum((local / scales) ** 2, axis=-1, keepdims=True))
+    elif mode == "norm":
+        f = np.linalg.norm(local, axis=-1, keepdims=True) / np.linalg.norm(scales, axis=-1, keepdims=True)
+    else:
+        raise ValueError(f"clamp: expected one of {CLAMP_MODES}, got {mode!r}")
+    return local / np.maximum(f, 1)
+
+
+@dataclass(frozen=True)
+class NoiseShape:
+    """Which axes scale the noise (ablation 'noise distribution', issue 8) [FM-01].
+
+    "anisotropic" (default): gamma R S z.  "iso_max" / "iso_mean": gamma s* R z with s* the
+    largest / mean axis.  "iso_fixed": gamma * fixed_sigma * z for every Gaussian.
+    """
+
+    kind: str = "anisotropic"
+    fixed_sigma: float = 0.0
+
+
+def sap_offsets(gaussians: Gaussians, gamma: float = GAMMA, p: float = P_PERTURB, alpha: float = 1.0,
+                clamp: bool | str = True, rng: np.random.Generator | None = None,
+                noise: NoiseShape = NoiseShape()) -> tuple[np.ndarray, np.ndarray]:
+    """Scale-Adaptive Perturbation offsets, masked, scheduled and clamped [FM-01..FM-04].
+
+    gaussians  N Gaussians (validated like ``render``)
+    gamma      perturbation coefficient (delta ~ N(0, gamma^2 Sigma))
+    p          probability that a Gaussian is perturbed
+    alpha      magnitude schedule value alpha(t), applied before the clamp
+    clamp      True (= the default reading "axis"), False (= "none") or a CLAMP_MODES name
+    rng        an explicitly seeded numpy Generator (required)
+    Returns ``(offsets (N,3) in the Gaussians' dtype, mask (N,) bool)``; offsets are exactly
+    zero where mask is False.  Draw order: the mask (N uniforms), then z (N x 3 normals), so the
+    same seed gives the same offsets.
+    """
+    validate_gaussians(gaussians)
+    if not isinstance(rng, np.random.Generator):
+        raise ValueError("rng: expected an explicitly seeded numpy.random.Generator, "
+                         f"got {type(rng).__name__}")
+    if not (np.isfinite(gamma) and gamma >= 0):
+        raise ValueError(f"gamma: expected a finite value >= 0, got {gamma}")
+    if not 0 <= p <= 1:
+        raise ValueError(f"p: expected a probability in [0, 1], got {p}")
+    if not (np.isfinite(alpha) and alpha >= 0):
+        raise ValueError(f"alpha: expected a finite value >= 0, got {alpha}")
+    mode = DEFAULT_CLAMP if clamp is True else ("none" if clamp is False else clamp)
+    if mode not in CLAMP_MODES:
+        raise ValueError(f"clamp: expected True, False or one of {CLAMP_MODES}, got {clamp!r}")
+    dt = gaussians.means.dtype
+    n = len(gaussians)
+    mask = rng.random(n) < p
+    z = rng.standard_normal((n, 3))
+    q_unit, _, _ = normalize_quats(gaussians.quats.astype(np.float64))
+    R = quat_to_rotmat(q_unit)
+    s = np.exp(gaussians.log_scales.astype(np.float64))
+    if noise.kind == "anisotropic":
+        sigma = s
+    elif noise.kind == "iso_max":
+        sigma = np.repeat(s.max(axis=-1, keepdims=True), 3, axis=-1)
+    elif noise.kind == "iso_mean":
+        sigma = np.repeat(s.mean(axis=-1, keepdims=True), 3, axis=-1)
+    elif noise.kind == "iso_fixed":
+        sigma = np.full_like(s, noise.fixed_sigma)
+    else:
+        raise ValueError(f"noise: expected anisotropic, iso_max, iso_mean or iso_fixed, got {noise.kind!r}")
+    local = alpha * gamma * sigma * z                 # delta = alpha gamma R S z, in the principal frame
+    local = clamp_displacement(local, s, mode)        # clamp after the schedule (FM-04)
+    offsets = np.einsum("nij,nj->ni", R, local)
+    offsets[~mask] = 0.0
+    return offsets.astype(dt), mask
+
+
+def clipped_fraction(alpha: float, mode: str, gamma: float = GAMMA, n: int = 200_000, seed: int = 0) -> float:
+    """Monte-Carlo fraction of Gaussians (for "axis": of axes) the clamp changes at ``alpha`` [FM-04].
+
+    The fraction does not depend on the scales or rotation (the clamp acts in units of s).
+    For "axis" it equals P(|alpha gamma z| > 1) = erfc(1 / (sqrt(2) alpha gamma)) per axis.
+    """
+    rng = np.random.default_rng(seed)
+    local = alpha * gamma * rng.standard_normal((n, 3))
+    s = np.ones((n, 3))
+    if mode == "axis":
+        return float(np.mean(np.abs(local) > 1))
+    clamped = clamp_displacement(local, s, mode)
+    return float(np.mean(np.any(clamped != local, axis=-1)))
+
+
+# ---------------------------------------------------------------------------------------------
+# Periodic reinitialisation [FM-06..FM-08]
+# ---------------------------------------------------------------------------------------------
+
+def is_reinit_iteration(t: int, total: int, interval: int = REINIT_INTERVAL) -> bool:
+    """Reinit at t = interval * k, k >= 1, for t <= T - interval [FM-06]."""
+    return t > 0 and t % interval == 0 and t <= total - interval
+
+
+def reinit_values(means: np.ndarray, n_sh: int, dtype) -> dict:
+    """The SfM-style initial state of scale, rotation and higher-order SH for the current
+    positions [FM-07]: log-scales from the 3-NN mean squared distance (as the initial cloud),
+    identity rotation (1, 0, 0, 0), zero SH coefficients above degree 0.
+    Returns {"log_scales": (N,3), "quats": (N,4), "sh_rest": (N, n_sh - 1, 3)}."""
+    from ..data.init import knn_log_scales
+    n = means.shape[0]
+    log_s = knn_log_scales(np.asarray(means, np.float64)).astype(dtype)
+    if log_s.ndim == 1:
+        log_s = np.repeat(log_s[:, None], 3, axis=-1)
+    quats = np.zeros((n, 4), dtype)
+    quats[:, 0] = 1
+    return {"log_scales": log_s, "quats": quats, "sh_rest": np.zeros((n, max(n_sh - 1, 0), 3), dtype)}
