@@ -293,20 +293,20 @@ def composite_backward(g2d: dict, lists: dict, width: int, height: int, profile:
             v_oG = v_a
         else:
             v_oG = np.where(b.oG <= profile.alpha_max, v_a, 0)
-        v_pow = v_oG * b.o * b.G
+        v_pow = v_oG * b.o * b.G                                            # dL/dpower
         dx, dy = b.dx, b.dy
         sel = b.blended
         gid = b.gid[sel]
-        parts = np.stack([
-            (-(b.A * dx + b.B * dy) * v_pow)[sel],
-            (-(b.C * dy + b.B * dx) * v_pow)[sel],
-            (-0.5 * dx * dx * v_pow)[sel],
-            (-dx * dy * v_pow)[sel],
-            (-0.5 * dy * dy * v_pow)[sel],
-            (v_oG * b.G)[sel],
-            *(b.w[..., None] * vC[:, :, None, :])[sel].T,
-            (b.w * vD[..., None])[sel],
-        ], axis=-1)
+        v_mx = -(b.A * dx + b.B * dy) * v_pow                               # 2D mean, pixels
+        v_my = -(b.C * dy + b.B * dx) * v_pow
+        v_Acon = -0.5 * dx * dx * v_pow                                     # conic, RAS-08:
+        v_Bcon = -dx * dy * v_pow                                           # off-diagonal once
+        v_Ccon = -0.5 * dy * dy * v_pow
+        v_o = v_oG * b.G
+        v_col = b.w[..., None] * vC[:, :, None, :]
+        v_z = b.w * vD[..., None]
+        parts = np.stack([v_mx[sel], v_my[sel], v_Acon[sel], v_Bcon[sel], v_Ccon[sel], v_o[sel],
+                          *v_col[sel].T, v_z[sel]], axis=-1)
         for k in range(parts.shape[1]):
             acc[:, k] += np.bincount(gid, weights=parts[:, k], minlength=n)
     return {"v_means2d": acc[:, 0:2], "v_conics": acc[:, 2:5], "v_opacities": acc[:, 5],
