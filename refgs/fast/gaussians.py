@@ -1,0 +1,576 @@
+"""Per-Gaussian stages (covariance, projection, SH colour) as fused numba kernels, forward and backward.
+
+The same model as refgs.covariance (COV-01/02), refgs.projection (PRJ-01..PRJ-08, PRF-01..PRF-04,
+PRF-08) and refgs.sh (SH-01..SH-04, CNV-09/10).  Each kernel handles a range [lo, hi) of
+Gaussians (refgs.fast.render.parallel_for runs ranges on threads); no Gaussian reads another's
+data, so the result does not depend on the thread count.  The expressions follow the
+reference's operation order where it is cheap to do so; sums of three or four products may
+associate differently from numpy's matmul/einsum (differences of a few ulp).
+
+dtype discipline (CNV-11): every kernel is compiled once per dtype.  Literal Python floats and
+ints would promote float32 arithmetic to float64 in numba, so every constant arrives in the
+array ``cst`` (built by :func:`constants_array` in the Gaussians' dtype) and is read by the index
+names ``K_*`` below.  Where the reference itself mixes in float64 (gsplat's radius extend and the
+tile rectangles, refgs.projection.tile_rectangles), so do these kernels.
+
+The backward *recomputes* the forward of each Gaussian from its raw parameters instead of storing
+(N,3,3) intermediates: a few dozen flops per Gaussian, cheaper than the memory traffic.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from ..constants import (ALPHA_MIN, SH_C0, SH_C1, SH_C2, SH_C3, SH_COLOR_OFFSET, TILE_SIZE,
+                         Profile)
+
+# indices into the constants array ``cst`` (all in the Gaussians' dtype)
+K_ZERO, K_ONE, K_TWO, K_THREE, K_FOUR, K_SIX, K_EIGHT, K_HALF = 0, 1, 2, 3, 4, 5, 6, 7
+K_NEAR, K_FAR, K_EPS2D, K_EIG_FLOOR, K_SIGMA, K_ALPHA_MIN, K_COLOR_OFFSET = 8, 9, 10, 11, 12, 13, 14
+K_FX, K_FY, K_CX, K_CY, K_LNX, K_LPX, K_LNY, K_LPY = 15, 16, 17, 18, 19, 20, 21, 22
+K_C0, K_C1, K_C2, K_C3 = 23, 24, 25, 30            # K_C2 .. K_C2+4, K_C3 .. K_C3+6
+N_CONSTANTS = 37
+
+# integer flags (array ``flags``)
+F_NEAR_INCLUSIVE, F_DET_NONPOSITIVE, F_EIG_RULE, F_OPACITY_CULL, F_OFFSCREEN_CULL = 0, 1, 2, 3, 4
+F_INRIA_TILES, F_ANTIALIASED, F_DEGREE, F_WIDTH, F_HEIGHT = 5, 6, 7, 8, 9
+N_FLAGS = 10
+
+#: the tile edge and the int32 ceiling of radii (HARD-11), as float64 for the rectangle maths
+_TILE = float(TILE_SIZE)
+_INT32_MAX = float(np.iinfo(np.int32).max)
+
+
+def constants_array(dtype, profile: Profile, camera, lims) -> np.ndarray:
+    """The constants of one render in ``dtype`` (index names K_*); ``lims`` from
+    refgs.projection.frustum_limits (PRJ-03)."""
+    c = np.zeros(N_CONSTANTS, np.float64)
+    c[[K_ZERO, K_ONE, K_TWO, K_THREE, K_FOUR, K_SIX, K_EIGHT, K_HALF]] = [0, 1, 2, 3, 4, 6, 8, 0.5]
+    c[K_NEAR], c[K_FAR], c[K_EPS2D] = profile.near, min(profile.far, np.finfo(dtype).max), profile.eps2d
+    c[K_EIG_FLOOR], c[K_SIGMA], c[K_ALPHA_MIN] = profile.eig_floor, profile.radius_sigma, ALPHA_MIN
+    c[K_COLOR_OFFSET] = SH_COLOR_OFFSET
+    c[K_FX], c[K_FY], c[K_CX], c[K_CY] = camera.fx, camera.fy, camera.cx, camera.cy
+    c[K_LNX:K_LPY + 1] = [float(v) for v in lims]
+    c[K_C0], c[K_C1] = SH_C0, SH_C1
+    c[K_C2:K_C2 + 5] = SH_C2
+    c[K_C3:K_C3 + 7] = SH_C3
+    out = c.astype(dtype)
+    if not np.isfinite(profile.far):
+        out[K_FAR] = np.inf
+    return out
+
+
+def flags_array(profile: Profile, antialiased: bool, degree: int, width: int, height: int) -> np.ndarray:
+    f = np.zeros(N_FLAGS, np.int64)
+    f[F_NEAR_INCLUSIVE] = profile.near_inclusive
+    f[F_DET_NONPOSITIVE] = profile.det_cull_nonpositive
+    f[F_EIG_RULE] = profile.radius_rule == "eig"
+    f[F_OPACITY_CULL] = profile.opacity_cull
+    f[F_OFFSCREEN_CULL] = profile.offscreen_cull
+    f[F_INRIA_TILES] = profile.tile_rule == "inria"
+    f[F_ANTIALIASED] = bool(antialiased)
+    f[F_DEGREE], f[F_WIDTH], f[F_HEIGHT] = degree, width, height
+    return f
+
+
+# ---------------------------------------------------------------------------------------------
+# shared per-Gaussian pieces (inlined into the parallel loops)
+# ---------------------------------------------------------------------------------------------
+
+@njit(cache=True, error_model="numpy")
+def _unit_quat(q, cst):
+    """(w, x, y, z) / |q| after division by max|q_k| (CNV-05) and |q| itself."""
+    one = cst[K_ONE]
+    m = max(max(abs(q[0]), abs(q[1])), max(abs(q[2]), abs(q[3])))
+    safe = m if m > cst[K_ZERO] else one
+    w, x, y, z = q[0] / safe, q[1] / safe, q[2] / safe, q[3] / safe
+    ns = math.sqrt(w * w + x * x + y * y + z * z)
+    return w / ns, x / ns, y / ns, z / ns, ns * safe
+
+
+@njit(cache=True, error_model="numpy")
+def _rotmat(w, x, y, z, R, cst):
+    """R (3,3) of a unit quaternion (CNV-04), written into R."""
+    one, two = cst[K_ONE], cst[K_TWO]
+    R[0, 0] = one - two * (y * y + z * z)
+    R[0, 1] = two * (x * y - w * z)
+    R[0, 2] = two * (x * z + w * y)
+    R[1, 0] = two * (x * y + w * z)
+    R[1, 1] = one - two * (x * x + z * z)
+    R[1, 2] = two * (y * z - w * x)
+    R[2, 0] = two * (x * z - w * y)
+    R[2, 1] = two * (y * z + w * x)
+    R[2, 2] = one - two * (x * x + y * y)
+
+
+@njit(cache=True, error_model="numpy")
+def _sh_basis(x, y, z, deg, b, cst):
+    """Basis values b[0:(deg+1)^2] of the unit direction (x, y, z) (CNV-09, SH-02)."""
+    c1 = cst[K_C1]
+    b[0] = cst[K_C0]
+    if deg >= 1:
+        b[1] = -c1 * y
+        b[2] = c1 * z
+        b[3] = -c1 * x
+    if deg >= 2:
+        xx, yy, zz = x * x, y * y, z * z
+        two = cst[K_TWO]
+        b[4] = cst[K_C2] * x * y
+        b[5] = cst[K_C2 + 1] * y * z
+        b[6] = cst[K_C2 + 2] * (two * zz - xx - yy)
+        b[7] = cst[K_C2 + 3] * x * z
+        b[8] = cst[K_C2 + 4] * (xx - yy)
+        if deg >= 3:
+            three, four = cst[K_THREE], cst[K_FOUR]
+            b[9] = cst[K_C3] * y * (three * xx - yy)
+            b[10] = cst[K_C3 + 1] * x * y * z
+            b[11] = cst[K_C3 + 2] * y * (four * zz - xx - yy)
+            b[12] = cst[K_C3 + 3] * z * (two * zz - three * xx - three * yy)
+            b[13] = cst[K_C3 + 4] * x * (four * zz - xx - yy)
+            b[14] = cst[K_C3 + 5] * z * (xx - yy)
+            b[15] = cst[K_C3 + 6] * x * (xx - three * yy)
+
+
+@njit(cache=True, error_model="numpy")
+def _sh_dir_vjp(x, y, z, deg, vb, cst):
+    """sum_k vb[k] d basis_k / d(x, y, z) (SH-04), the derivatives of refgs.sh.sh_basis."""
+    gx = cst[K_ZERO]
+    gy = cst[K_ZERO]
+    gz = cst[K_ZERO]
+    if deg >= 1:
+        c1 = cst[K_C1]
+        gy -= c1 * vb[1]
+        gz += c1 * vb[2]
+        gx -= c1 * vb[3]
+    if deg >= 2:
+        two, four = cst[K_TWO], cst[K_FOUR]
+        c = K_C2
+        gx += cst[c] * y * vb[4]
+        gy += cst[c] * x * vb[4]
+        gy += cst[c + 1] * z * vb[5]
+        gz += cst[c + 1] * y * vb[5]
+        gx += -two * cst[c + 2] * x * vb[6]
+        gy += -two * cst[c + 2] * y * vb[6]
+        gz += four * cst[c + 2] * z * vb[6]
+        gx += cst[c + 3] * z * vb[7]
+        gz += cst[c + 3] * x * vb[7]
+        gx += two * cst[c + 4] * x * vb[8]
+        gy += -two * cst[c + 4] * y * vb[8]
+        if deg >= 3:
+            three, six, eight = cst[K_THREE], cst[K_SIX], cst[K_EIGHT]
+            xx, yy, zz = x * x, y * y, z * z
+            c = K_C3
+            gx += cst[c] * six * x * y * vb[9]
+            gy += cst[c] * (three * xx - three * yy) * vb[9]
+            gx += cst[c + 1] * y * z * vb[10]
+            gy += cst[c + 1] * x * z * vb[10]
+            gz += cst[c + 1] * x * y * vb[10]
+            gx += -two * cst[c + 2] * x * y * vb[11]
+            gy += cst[c + 2] * (four * zz - xx - three * yy) * vb[11]
+            gz += eight * cst[c + 2] * y * z * vb[11]
+            gx += -six * cst[c + 3] * x * z * vb[12]
+            gy += -six * cst[c + 3] * y * z * vb[12]
+            gz += cst[c + 3] * (six * zz - three * xx - three * yy) * vb[12]
+            gx += cst[c + 4] * (four * zz - three * xx - yy) * vb[13]
+            gy += -two * cst[c + 4] * x * y * vb[13]
+            gz += eight * cst[c + 4] * x * z * vb[13]
+            gx += two * cst[c + 5] * x * z * vb[14]
+            gy += -two * cst[c + 5] * y * z * vb[14]
+            gz += cst[c + 5] * (xx - yy) * vb[14]
+            gx += cst[c + 6] * (three * xx - three * yy) * vb[15]
+            gy += -six * cst[c + 6] * x * y * vb[15]
+    return gx, gy, gz
+
+
+@njit(cache=True, error_model="numpy")
+def _sigmoid(x, cst):
+    """1 / (1 + exp(-x)), evaluated without overflow (CNV-07)."""
+    one = cst[K_ONE]
+    if x >= cst[K_ZERO]:
+        return one / (one + math.exp(-x))
+    e = math.exp(x)
+    return e / (one + e)
+
+
+@njit(cache=True, error_model="numpy")
+def _camera_state(g, means, log_scales, quats, w2c, cst, R, S, M, Cc, t, sig, tmp):
+    """Covariance (COV-01) and camera-frame mean and covariance (PRJ-01) of Gaussian g.
+
+    Fills R (rotation), S (scales, 3), M = R diag(S), Cc = Rw Sigma Rw^T and t (sig, tmp: 3x3
+    scratch); returns |q|."""
+    w, x, y, z, qn = _unit_quat(quats[g], cst)
+    _rotmat(w, x, y, z, R, cst)
+    for j in range(3):
+        S[j] = math.exp(log_scales[g, j])
+    for i in range(3):
+        for j in range(3):
+            M[i, j] = R[i, j] * S[j]
+    # Sigma = M M^T, then Rw Sigma Rw^T via P = Rw M: Cc = P P^T
+    for i in range(3):
+        t[i] = w2c[i, 0] * means[g, 0] + w2c[i, 1] * means[g, 1] + w2c[i, 2] * means[g, 2] + w2c[i, 3]
+    for i in range(3):
+        for j in range(3):
+            sig[i, j] = M[i, 0] * M[j, 0] + M[i, 1] * M[j, 1] + M[i, 2] * M[j, 2]
+    for i in range(3):
+        for j in range(3):
+            tmp[i, j] = w2c[i, 0] * sig[0, j] + w2c[i, 1] * sig[1, j] + w2c[i, 2] * sig[2, j]
+    for i in range(3):
+        for j in range(3):
+            Cc[i, j] = tmp[i, 0] * w2c[j, 0] + tmp[i, 1] * w2c[j, 1] + tmp[i, 2] * w2c[j, 2]
+    return qn
+
+
+@njit(cache=True, error_model="numpy")
+def _jacobian(t, tz, cst):
+    """Clamped EWA Jacobian entries (PRJ-03): j00, j02, j11, j12, u, v, clamped_x, clamped_y."""
+    fx, fy = cst[K_FX], cst[K_FY]
+    u_raw = t[0] / tz
+    v_raw = t[1] / tz
+    u = min(max(u_raw, -cst[K_LNX]), cst[K_LPX])
+    v = min(max(v_raw, -cst[K_LNY]), cst[K_LPY])
+    cl_x = (u_raw < -cst[K_LNX]) or (u_raw > cst[K_LPX])
+    cl_y = (v_raw < -cst[K_LNY]) or (v_raw > cst[K_LPY])
+    return fx / tz, -fx * u / tz, fy / tz, -fy * v / tz, u, v, cl_x, cl_y
+
+
+@njit(cache=True, error_model="numpy")
+def _cov2d(Cc, j00, j02, j11, j12, cst):
+    """Undilated 2D covariance entries m00, m01 (symmetrised), m11 of J Cc J^T (PRJ-04)."""
+    r00 = j00 * Cc[0, 0] + j02 * Cc[2, 0]
+    r01 = j00 * Cc[0, 1] + j02 * Cc[2, 1]
+    r02 = j00 * Cc[0, 2] + j02 * Cc[2, 2]
+    r10 = j11 * Cc[1, 0] + j12 * Cc[2, 0]
+    r11 = j11 * Cc[1, 1] + j12 * Cc[2, 1]
+    r12 = j11 * Cc[1, 2] + j12 * Cc[2, 2]
+    m00 = r00 * j00 + r02 * j02
+    m01 = r01 * j11 + r02 * j12
+    m10 = r10 * j00 + r12 * j02
+    m11 = r11 * j11 + r12 * j12
+    return m00, cst[K_HALF] * (m01 + m10), m11
+
+
+@njit(cache=True, error_model="numpy")
+def _in_depth(tz, cst, flags):
+    """PRJ-02 near/far test."""
+    ok = (tz > cst[K_NEAR]) if flags[F_NEAR_INCLUSIVE] else (tz >= cst[K_NEAR])
+    return ok and tz <= cst[K_FAR]
+
+
+@njit(cache=True, error_model="numpy")
+def _clip_tile(x, hi):
+    """nan -> 0, +-inf clipped, then clip to [0, hi] (refgs.projection.tile_rectangles)."""
+    if x != x:
+        return 0
+    if x < 0.0:
+        return 0
+    if x > hi:
+        return hi
+    return int(x)
+
+
+# ---------------------------------------------------------------------------------------------
+# forward
+# ---------------------------------------------------------------------------------------------
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def gaussians_forward(lo, hi, means, log_scales, quats, logits, oscale, sh, w2c, campos, cst,
+                      sigma64, flags, means2d, depths, cov2d, conics, comp, o_sig, opac, colors,
+                      clamped, radii, visible, rect):
+    """Covariance, projection, culling, radius, tile rectangle and SH colour of Gaussians [lo, hi).
+
+    Inputs (N rows, dtype D): means (N,3), log_scales (N,3), quats (N,4), logits (N,),
+    oscale (N,) opacity_scale (ones when None), sh (N,K,3), w2c (4,4) and campos (3,) in D,
+    cst / flags, sigma64 = the radius sigma in float64 (gsplat's extend is float64 in refgs).
+    Outputs written in place: means2d (N,2), depths (N,), cov2d (N,3) dilated (a,b,c), conics (N,3),
+    comp (N,), o_sig (N,) sigmoid(logit), opac (N,) = o_sig*scale*comp, colors (N,3),
+    clamped (N,3) bool, radii (N,2) int32, visible (N,) bool, rect (N,4) int64 (x0,x1,y0,y1).
+    """
+    deg = flags[F_DEGREE]
+    W, H = flags[F_WIDTH], flags[F_HEIGHT]
+    gx = (W + TILE_SIZE - 1) // TILE_SIZE
+    gy = (H + TILE_SIZE - 1) // TILE_SIZE
+    zero, one = cst[K_ZERO], cst[K_ONE]
+    eps = cst[K_EPS2D]
+    # scratch, allocated once per call (not per Gaussian)
+    R = np.empty((3, 3), means.dtype)
+    M = np.empty((3, 3), means.dtype)
+    Cc = np.empty((3, 3), means.dtype)
+    S = np.empty(3, means.dtype)
+    t = np.empty(3, means.dtype)
+    basis = np.empty(16, means.dtype)
+    sig = np.empty((3, 3), means.dtype)
+    tmp = np.empty((3, 3), means.dtype)
+    for g in range(lo, hi):
+        _camera_state(g, means, log_scales, quats, w2c, cst, R, S, M, Cc, t, sig, tmp)
+        tz = t[2]
+        in_depth = _in_depth(tz, cst, flags)
+        tzs = tz if in_depth else one
+        depths[g] = tz
+        mx = cst[K_FX] * t[0] / tzs + cst[K_CX]                  # CNV-08
+        my = cst[K_FY] * t[1] / tzs + cst[K_CY]
+        means2d[g, 0] = mx
+        means2d[g, 1] = my
+        j00, j02, j11, j12, u, v, clx, cly = _jacobian(t, tzs, cst)
+        m00, m01, m11 = _cov2d(Cc, j00, j02, j11, j12, cst)
+        a = m00 + eps                                             # PRJ-04 dilation
+        b = m01
+        c = m11 + eps
+        cov2d[g, 0], cov2d[g, 1], cov2d[g, 2] = a, b, c
+        # conic = inverse of [[a, b], [b, c]] on the entries divided by m = max(|a|, |c|), so that
+        # nothing overflows for huge splats (HARD-11), as refgs.projection
+        m = max(abs(a), abs(c))
+        if not m > zero:
+            m = one
+        a1, b1, c1 = a / m, b / m, c / m
+        det1 = a1 * c1 - b1 * b1                          # det / m^2
+        det_ok = (det1 > zero) if flags[F_DET_NONPOSITIVE] else (det1 != zero)
+        det1s = det1 if det_ok else one
+        md = m * det1s
+        conics[g, 0] = c1 / md
+        conics[g, 1] = -b1 / md
+        conics[g, 2] = a1 / md
+        if flags[F_ANTIALIASED]:                                  # PRJ-08
+            e1 = eps / m
+            det0_1 = (a1 - e1) * (c1 - e1) - b1 * b1
+            cp = math.sqrt(max(zero, det0_1 / det1s))
+        else:
+            cp = one
+        comp[g] = cp
+        os_ = _sigmoid(logits[g], cst)
+        o_sig[g] = os_
+        o_eff = os_ * oscale[g] * cp
+        opac[g] = o_eff
+        vis = in_depth and det_ok
+        # PRJ-05 radius
+        if flags[F_EIG_RULE]:
+            mid1 = cst[K_HALF] * (a1 + c1)                       # lambda_max in units of m
+            root = m * math.sqrt(max(mid1 * mid1 - det1, zero))
+            lam1 = m * mid1 + max(math.sqrt(cst[K_EIG_FLOOR]), root)
+            r = np.ceil(cst[K_SIGMA] * math.sqrt(max(lam1, zero)))
+            rx = np.float64(r)
+            ry = rx
+        else:
+            extend = sigma64
+            if flags[F_OPACITY_CULL]:
+                vis = vis and o_eff >= cst[K_ALPHA_MIN]
+                ext_o = math.sqrt(cst[K_TWO] * math.log(max(o_eff, cst[K_ALPHA_MIN]) / cst[K_ALPHA_MIN]))
+                extend = min(extend, np.float64(ext_o))
+            rx = np.ceil(extend * np.float64(math.sqrt(max(a, zero))))
+            ry = np.ceil(extend * np.float64(math.sqrt(max(c, zero))))
+            vis = vis and not (rx <= 0.0 and ry <= 0.0)
+        if not vis:
+            rx = 0.0
+            ry = 0.0
+        # RAS-01 / PRF-08 tile rectangle, in float64
+        fmx, fmy = np.float64(mx), np.float64(my)
+        if flags[F_INRIA_TILES]:
+            px, py = fmx - 0.5, fmy - 0.5
+            x0 = np.trunc((px - rx) / _TILE)
+            x1 = np.trunc((px + rx + _TILE - 1.0) / _TILE)
+            y0 = np.trunc((py - ry) / _TILE)
+            y1 = np.trunc((py + ry + _TILE - 1.0) / _TILE)
+        else:
+            x0 = np.floor(fmx / _TILE - rx / _TILE)
+            x1 = np.ceil(fmx / _TILE + rx / _TILE)
+            y0 = np.floor(fmy / _TILE - ry / _TILE)
+            y1 = np.ceil(fmy / _TILE + ry / _TILE)
+        ix0, ix1 = _clip_tile(x0, gx), _clip_tile(x1, gx)
+        iy0, iy1 = _clip_tile(y0, gy), _clip_tile(y1, gy)
+        if flags[F_OFFSCREEN_CULL]:
+            vis = vis and not (fmx + rx <= 0.0 or fmx - rx >= W or fmy + ry <= 0.0 or fmy - ry >= H)
+        vis = vis and ix1 > ix0 and iy1 > iy0
+        visible[g] = vis
+        if vis:
+            radii[g, 0] = np.int32(min(rx, _INT32_MAX))
+            radii[g, 1] = np.int32(min(ry, _INT32_MAX))
+            rect[g, 0], rect[g, 1], rect[g, 2], rect[g, 3] = ix0, ix1, iy0, iy1
+        else:
+            radii[g, 0] = 0
+            radii[g, 1] = 0
+            rect[g, 0], rect[g, 1], rect[g, 2], rect[g, 3] = 0, 0, 0, 0
+        # SH-01..SH-03 colour seen from campos = -Rw^T tw
+        dx = means[g, 0] - campos[0]
+        dy = means[g, 1] - campos[1]
+        dz = means[g, 2] - campos[2]
+        dist = math.sqrt(dx * dx + dy * dy + dz * dz)
+        if not dist > zero:
+            dist = one
+        _sh_basis(dx / dist, dy / dist, dz / dist, deg, basis, cst)
+        nb = (deg + 1) * (deg + 1)
+        for ch in range(3):
+            acc = zero
+            for k in range(nb):
+                acc += basis[k] * sh[g, k, ch]
+            rgb = acc + cst[K_COLOR_OFFSET]
+            cl = rgb < zero
+            clamped[g, ch] = cl
+            colors[g, ch] = zero if cl else rgb
+
+
+# ---------------------------------------------------------------------------------------------
+# backward
+# ---------------------------------------------------------------------------------------------
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def gaussians_backward(lo, hi, means, log_scales, quats, logits, oscale, sh, w2c, cst, flags,
+                       campos, conics, comp, o_sig, clamped, visible,
+                       v_means2d, v_conics, v_opac, v_colors, v_depths,
+                       out_means, out_log_scales, out_quats, out_logits, out_sh):
+    """Backward of :func:`gaussians_forward` (COV-02, PRJ-07, PRJ-08, SH-04, CNV-07), Gaussians [lo, hi).
+
+    v_means2d (N,2), v_conics (N,3) (off-diagonal counted once, RAS-08), v_opac (N,) w.r.t. the
+    opacity actually used, v_colors (N,3), v_depths (N,): the per-Gaussian sums of the compositing
+    backward.  campos (3,) in D.  Writes dL/d(raw parameters) into out_* (zero rows for culled
+    Gaussians, zero SH coefficients above the active degree).  Mirrors refgs.render.render_backward.
+    """
+    deg = flags[F_DEGREE]
+    nb = (deg + 1) * (deg + 1)
+    zero, one, two, half = cst[K_ZERO], cst[K_ONE], cst[K_TWO], cst[K_HALF]
+    eps = cst[K_EPS2D]
+    fx, fy = cst[K_FX], cst[K_FY]
+    # scratch, allocated once per call (not per Gaussian)
+    basis = np.empty(16, means.dtype)
+    vb = np.empty(16, means.dtype)
+    R = np.empty((3, 3), means.dtype)
+    M = np.empty((3, 3), means.dtype)
+    Cc = np.empty((3, 3), means.dtype)
+    S = np.empty(3, means.dtype)
+    t = np.empty(3, means.dtype)
+    sig = np.empty((3, 3), means.dtype)
+    tmp = np.empty((3, 3), means.dtype)
+    Jm = np.zeros((2, 3), means.dtype)
+    VJ = np.empty((2, 3), means.dtype)
+    vCc = np.empty((3, 3), means.dtype)
+    vJ = np.empty((2, 3), means.dtype)
+    vS = np.empty((3, 3), means.dtype)
+    vM = np.empty((3, 3), means.dtype)
+    vR = np.empty((3, 3), means.dtype)
+    for g in range(lo, hi):
+        for k in range(out_sh.shape[1]):
+            for ch in range(3):
+                out_sh[g, k, ch] = zero
+        for j in range(3):
+            out_means[g, j] = zero
+            out_log_scales[g, j] = zero
+        for j in range(4):
+            out_quats[g, j] = zero
+        out_logits[g] = zero
+        if not visible[g]:
+            continue
+        # opacity = sigmoid(logit) * scale * comp
+        os_, sc, cp = o_sig[g], oscale[g], comp[g]
+        vo = v_opac[g]
+        v_osig = vo * sc * cp
+        v_comp = vo * os_ * sc
+        out_logits[g] = v_osig * os_ * (one - os_)
+        # SH-04: colour -> sh coefficients and the view direction
+        dx = means[g, 0] - campos[0]
+        dy = means[g, 1] - campos[1]
+        dz = means[g, 2] - campos[2]
+        dist = math.sqrt(dx * dx + dy * dy + dz * dz)
+        if not dist > zero:
+            dist = one
+        x, y, z = dx / dist, dy / dist, dz / dist
+        _sh_basis(x, y, z, deg, basis, cst)
+        gc0 = zero if clamped[g, 0] else v_colors[g, 0]
+        gc1 = zero if clamped[g, 1] else v_colors[g, 1]
+        gc2 = zero if clamped[g, 2] else v_colors[g, 2]
+        for k in range(nb):
+            out_sh[g, k, 0] = basis[k] * gc0
+            out_sh[g, k, 1] = basis[k] * gc1
+            out_sh[g, k, 2] = basis[k] * gc2
+            vb[k] = sh[g, k, 0] * gc0 + sh[g, k, 1] * gc1 + sh[g, k, 2] * gc2
+        vdx, vdy, vdz = _sh_dir_vjp(x, y, z, deg, vb, cst)
+        dotv = x * vdx + y * vdy + z * vdz
+        vsx = (vdx - x * dotv) / dist
+        vsy = (vdy - y * dotv) / dist
+        vsz = (vdz - z * dotv) / dist
+        # PRJ-07: camera frame and Jacobian, recomputed
+        qn = _camera_state(g, means, log_scales, quats, w2c, cst, R, S, M, Cc, t, sig, tmp)
+        tz = t[2]
+        j00, j02, j11, j12, u, v, clx, cly = _jacobian(t, tz, cst)
+        # conic -> dilated 2D covariance: Q = Sigma2D^-1, dQ = -Q dSigma Q with b counted once
+        # (no division by det^2, which overflows for huge splats), as refgs.projection
+        A, B, C = conics[g, 0], conics[g, 1], conics[g, 2]
+        vA, vB, vC = v_conics[g, 0], v_conics[g, 1], v_conics[g, 2]
+        va = -(A * A * vA + A * B * vB + B * B * vC)
+        vbb = -(two * A * B * vA + (A * C + B * B) * vB + two * B * C * vC)
+        vc = -(B * B * vA + B * C * vB + C * C * vC)
+        if flags[F_ANTIALIASED] and cp > zero:                # PRJ-08, rho2 = det0 / det
+            v_rho2 = v_comp * half / cp
+            rho2 = cp * cp
+            det_q = A * C - B * B
+            va += v_rho2 * ((one - rho2) * A - eps * det_q)
+            vc += v_rho2 * ((one - rho2) * C - eps * det_q)
+            vbb += v_rho2 * two * (one - rho2) * B
+        # V = [[va, vb/2], [vb/2, vc]]; J = [[j00, 0, j02], [0, j11, j12]] (Jm[0,1] = Jm[1,0] = 0)
+        V01 = half * vbb
+        Jm[0, 0], Jm[0, 2], Jm[1, 1], Jm[1, 2] = j00, j02, j11, j12
+        for j in range(3):
+            VJ[0, j] = va * Jm[0, j] + V01 * Jm[1, j]
+            VJ[1, j] = V01 * Jm[0, j] + vc * Jm[1, j]
+        for i in range(3):
+            for j in range(3):
+                vCc[i, j] = Jm[0, i] * VJ[0, j] + Jm[1, i] * VJ[1, j]
+        for i in range(2):
+            for j in range(3):
+                vJ[i, j] = two * (VJ[i, 0] * Cc[0, j] + VJ[i, 1] * Cc[1, j] + VJ[i, 2] * Cc[2, j])
+        # v_Sigma = Rw^T vCc Rw
+        for i in range(3):
+            for j in range(3):
+                tmp[i, j] = w2c[0, i] * vCc[0, j] + w2c[1, i] * vCc[1, j] + w2c[2, i] * vCc[2, j]
+        for i in range(3):
+            for j in range(3):
+                vS[i, j] = tmp[i, 0] * w2c[0, j] + tmp[i, 1] * w2c[1, j] + tmp[i, 2] * w2c[2, j]
+        # J entries -> t (exact depth gradient under the clamp, PRJ-07)
+        tz2 = tz * tz
+        v_tz = -fx / tz2 * vJ[0, 0] - fy / tz2 * vJ[1, 1]
+        v_tz += fx * u / tz2 * vJ[0, 2] + fy * v / tz2 * vJ[1, 2]
+        v_u = -fx / tz * vJ[0, 2]
+        v_v = -fy / tz * vJ[1, 2]
+        v_tx = zero
+        v_ty = zero
+        if not clx:
+            v_tx += v_u / tz
+            v_tz += -v_u * t[0] / tz2
+        if not cly:
+            v_ty += v_v / tz
+            v_tz += -v_v * t[1] / tz2
+        vm0, vm1 = v_means2d[g, 0], v_means2d[g, 1]
+        v_tx += fx / tz * vm0
+        v_ty += fy / tz * vm1
+        v_tz += -fx * t[0] / tz2 * vm0 - fy * t[1] / tz2 * vm1
+        v_tz += v_depths[g]
+        for j in range(3):                                   # t = Rw mean + tw
+            out_means[g, j] = (v_tx * w2c[0, j] + v_ty * w2c[1, j] + v_tz * w2c[2, j])
+        out_means[g, 0] += vsx
+        out_means[g, 1] += vsy
+        out_means[g, 2] += vsz
+        # COV-02: Sigma = M M^T, M = R diag(s)
+        for i in range(3):
+            for j in range(3):
+                vM[i, j] = ((vS[i, 0] + vS[0, i]) * M[0, j] + (vS[i, 1] + vS[1, i]) * M[1, j]
+                            + (vS[i, 2] + vS[2, i]) * M[2, j])
+        for i in range(3):
+            for j in range(3):
+                vR[i, j] = vM[i, j] * S[j]
+        for j in range(3):
+            out_log_scales[g, j] = (vM[0, j] * R[0, j] + vM[1, j] * R[1, j] + vM[2, j] * R[2, j]) * S[j]
+        w, x, y, z, _ = _unit_quat(quats[g], cst)
+        G = vR
+        vw = two * (-z * G[0, 1] + y * G[0, 2] + z * G[1, 0] - x * G[1, 2] - y * G[2, 0] + x * G[2, 1])
+        vx = two * (y * G[0, 1] + z * G[0, 2] + y * G[1, 0] - two * x * G[1, 1]
+                    - w * G[1, 2] + z * G[2, 0] + w * G[2, 1] - two * x * G[2, 2])
+        vy = two * (-two * y * G[0, 0] + x * G[0, 1] + w * G[0, 2] + x * G[1, 0]
+                    + z * G[1, 2] - w * G[2, 0] + z * G[2, 1] - two * y * G[2, 2])
+        vz = two * (-two * z * G[0, 0] - w * G[0, 1] + x * G[0, 2] + w * G[1, 0]
+                    - two * z * G[1, 1] + y * G[1, 2] + x * G[2, 0] + y * G[2, 1])
+        dot = w * vw + x * vx + y * vy + z * vz                # (I - u u^T) v / |q| (CNV-05)
+        out_quats[g, 0] = (vw - w * dot) / qn
+        out_quats[g, 1] = (vx - x * dot) / qn
+        out_quats[g, 2] = (vy - y * dot) / qn
+        out_quats[g, 3] = (vz - z * dot) / qn
+
+

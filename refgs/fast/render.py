@@ -1,0 +1,189 @@
+"""refgs.fast.render / render_backward: the reference's API on the numba kernels.
+
+Stages (the same as refgs.render, clause ids there):
+
+    validate_inputs (numpy, O(N))  ->  gaussians_forward (covariance, projection, SH; per Gaussian)
+    -> stable argsort by depth (numpy) + build_tile_lists (counting sort)
+    -> composite_forward (per tile)
+
+and backward
+
+    composite_backward (per tile, a per-intersection buffer) -> reduce_by_gaussian (sequential)
+    -> gaussians_backward (per Gaussian).
+
+Every kernel is compiled once per dtype (float32 / float64) and cached on disk (numba
+``cache=True``); computation happens in the Gaussians' dtype (CNV-11).
+
+Parallelism.  The kernels are plain ``nogil`` numba functions over a range of work items (tiles or
+Gaussians); :func:`parallel_for` cuts the range into chunks and runs them on a thread pool of
+``numba.get_num_threads()`` threads (set it with ``numba.set_num_threads`` or NUMBA_NUM_THREADS).
+Every work item writes only its own outputs, so results are bit-identical for any thread count
+and schedule.  (Numba's ``parallel=True`` would do the same but multiplies compile time.)
+"""
+from __future__ import annotations
+
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
+import numba
+import numpy as np
+
+from ..constants import ALPHA_MIN, T_MIN, TILE_SIZE
+from ..projection import frustum_limits
+from ..rasterize import tile_grid
+from ..render import _check_cotangent, _fail, resolve_profile, validate_inputs
+from ..types import Gradients, RenderConfig, RenderOutput
+from . import gaussians as gk
+from . import kernels as rk
+
+#: marker stored in RenderOutput.cache by :func:`render` (what :func:`render_backward` accepts)
+CACHE_TAG = "refgs.fast"
+#: work items per thread and call: more chunks balance uneven tiles, fewer cost less overhead
+CHUNKS_PER_THREAD = 8
+#: Gaussians per chunk at least (the per-Gaussian kernels are cheap per item)
+MIN_GAUSSIAN_CHUNK = 2048
+
+_pool_lock = threading.Lock()
+_pool: dict = {}
+
+
+def _executor(n_threads: int) -> ThreadPoolExecutor:
+    with _pool_lock:
+        ex = _pool.get(n_threads)
+        if ex is None:
+            ex = _pool[n_threads] = ThreadPoolExecutor(n_threads, thread_name_prefix="refgs-fast")
+        return ex
+
+
+def parallel_for(kernel, n_items: int, *args, min_chunk: int = 1) -> None:
+    """Run ``kernel(lo, hi, *args)`` over [0, n_items) in chunks on numba.get_num_threads() threads."""
+    n_threads = max(1, int(numba.get_num_threads()))
+    chunk = max(min_chunk, -(-n_items // (n_threads * CHUNKS_PER_THREAD)))
+    bounds = [(lo, min(n_items, lo + chunk)) for lo in range(0, n_items, chunk)]
+    if n_threads == 1 or len(bounds) <= 1:
+        kernel(0, n_items, *args)
+        return
+    futures = [_executor(n_threads).submit(kernel, lo, hi, *args) for lo, hi in bounds]
+    for f in futures:
+        f.result()
+
+
+def _c(a, dt):
+    return np.ascontiguousarray(a, dtype=dt)
+
+
+def _raster_constants(dt, profile) -> np.ndarray:
+    rc = np.zeros(rk.N_RASTER_CONSTANTS, np.float64)
+    rc[rk.R_ONE], rc[rk.R_NEG_HALF] = 1.0, -0.5
+    rc[rk.R_CAP], rc[rk.R_ALPHA_MIN], rc[rk.R_T_MIN] = profile.alpha_max, ALPHA_MIN, T_MIN
+    return rc.astype(dt)
+
+
+def render(gaussians, camera, config: RenderConfig | None = None, *,
+           screen: bool = True) -> RenderOutput:
+    """Render like :func:`refgs.render` (same RenderOutput fields and meanings, API-04).
+
+    The ``cache`` holds what :func:`render_backward` needs (compiled-kernel inputs, tile lists).
+    ``screen=False`` switches off the conservative per-row candidate screen of
+    refgs.fast.kernels (every pixel x list-slot pair evaluated; bit-identical results, slower;
+    for tests).
+    """
+    config = RenderConfig() if config is None else config
+    validate_inputs(gaussians, camera, config)
+    profile = resolve_profile(config)
+    g = gaussians
+    dt = g.means.dtype
+    n = len(g)
+    W, H = int(camera.width), int(camera.height)
+    deg = config.active_sh_degree(g.sh.shape[1])
+    means, log_scales, quats = _c(g.means, dt), _c(g.log_scales, dt), _c(g.quats, dt)
+    logits, sh = _c(g.opacity_logits, dt), _c(g.sh, dt)
+    oscale = np.ones(n, dt) if config.opacity_scale is None else _c(config.opacity_scale, dt)
+    w2c = _c(camera.world_to_camera, dt)
+    campos = camera.center.astype(dt)
+    cst = gk.constants_array(dt, profile, camera, frustum_limits(camera, profile, np.dtype(dt)))
+    flags = gk.flags_array(profile, config.antialiased, deg, W, H)
+
+    means2d, cov2d, conics = np.empty((n, 2), dt), np.empty((n, 3), dt), np.empty((n, 3), dt)
+    depths, comp, o_sig, opac = (np.empty(n, dt) for _ in range(4))
+    colors, clamped = np.empty((n, 3), dt), np.empty((n, 3), np.bool_)
+    radii, visible, rect = np.empty((n, 2), np.int32), np.empty(n, np.bool_), np.empty((n, 4), np.int64)
+    parallel_for(gk.gaussians_forward, n, means, log_scales, quats, logits, oscale, sh, w2c, campos,
+                 cst, float(profile.radius_sigma), flags, means2d, depths, cov2d, conics, comp,
+                 o_sig, opac, colors, clamped, radii, visible, rect, min_chunk=MIN_GAUSSIAN_CHUNK)
+
+    gx, gy = tile_grid(W, H)
+    idx = np.flatnonzero(visible)
+    order = idx[np.argsort(depths[idx], kind="stable")]           # RAS-02: depth, ties by index
+    gauss, offsets = rk.build_tile_lists(order, rect, gx * gy, gx)
+
+    bg = np.asarray(config.background, dt)
+    rc = _raster_constants(dt, profile)
+    image = np.empty((H, W, 3), dt)
+    alpha, depth, final_T = np.empty((H, W), dt), np.empty((H, W), dt), np.empty((H, W), dt)
+    n_contrib = np.empty((H, W), np.int32)
+    eps = float(np.finfo(dt).eps)
+    row_cnt = np.zeros((gx * gy, TILE_SIZE), np.int64)
+    row_slots = np.empty(TILE_SIZE * gauss.size, np.int32)
+    row_lo, row_hi = np.empty(TILE_SIZE * gauss.size, np.int8), np.empty(TILE_SIZE * gauss.size, np.int8)
+    parallel_for(rk.composite_forward, gx * gy, gauss, offsets, means2d, conics, opac, colors, depths,
+                 bg, rc, eps, bool(profile.stop_inclusive), bool(screen), gx, image, alpha, depth,
+                 n_contrib, final_T, row_cnt, row_slots, row_lo, row_hi)
+    cache = {"tag": CACHE_TAG, "profile": profile, "sh_degree": deg,
+             "lists": {"gauss": gauss, "offsets": offsets}, "tile_rect": rect,
+             "rows": (row_cnt, row_slots, row_lo, row_hi),
+             "arrays": (means, log_scales, quats, logits, oscale, sh, w2c, campos),
+             "cst": cst, "flags": flags, "rc": rc, "bg": bg, "screen": bool(screen),
+             "comp": comp, "o_sig": o_sig, "clamped": clamped, "scale": oscale}
+    return RenderOutput(image=image, alpha=alpha, depth=depth, n_contrib=n_contrib, radii=radii,
+                        means2d=means2d, depths=depths, conics=conics, cov2d=cov2d, colors=colors,
+                        opacities=opac, final_T=final_T, visible=visible, gaussians=g,
+                        camera=camera, config=config, cache=cache)
+
+
+def render_backward(out: RenderOutput, v_image, v_alpha=None, v_depth=None) -> Gradients:
+    """Gradients like :func:`refgs.render_backward` (API-05) for an output of :func:`render`.
+
+    v_image (H,W,3), optional v_alpha (H,W) and v_depth (H,W).  Returns refgs.Gradients in the
+    dtype of ``out`` (means2d = dL/d 2D mean in pixels; culled Gaussians get zero rows).
+    """
+    if not isinstance(out, RenderOutput) or out.cache.get("tag") != CACHE_TAG:
+        _fail("out", "the RenderOutput of refgs.fast.render", type(out).__name__)
+    c = out.cache
+    dt = out.image.dtype
+    H, W = out.alpha.shape
+    v_image = _check_cotangent("v_image", v_image, (H, W, 3), dt)
+    if v_image is None:
+        _fail("v_image", f"an array of shape {(H, W, 3)}", None)
+    v_alpha = _check_cotangent("v_alpha", v_alpha, (H, W), dt)
+    v_depth = _check_cotangent("v_depth", v_depth, (H, W), dt)
+    v_alpha = np.zeros((H, W), dt) if v_alpha is None else _c(v_alpha, dt)
+    v_depth = np.zeros((H, W), dt) if v_depth is None else _c(v_depth, dt)
+    v_image = _c(v_image, dt)
+    profile = c["profile"]
+    gauss, offsets = c["lists"]["gauss"], c["lists"]["offsets"]
+    gx, gy = tile_grid(W, H)
+    n = out.means2d.shape[0]
+
+    contrib = np.empty((gauss.size, rk.N_GRAD_COLUMNS), dt)
+    parallel_for(rk.composite_backward, gx * gy, gauss, offsets, out.means2d, out.conics,
+                 out.opacities, out.colors, out.depths, c["bg"], c["rc"],
+                 bool(profile.grad_through_alpha_cap), gx, out.n_contrib, out.final_T,
+                 v_image, v_alpha, v_depth, *c["rows"], contrib)
+    per_g = np.zeros((n, rk.N_GRAD_COLUMNS), dt)
+    rk.reduce_by_gaussian(gauss, contrib, per_g)
+
+    means, log_scales, quats, logits, oscale, sh, w2c, campos = c["arrays"]
+    v_means2d = np.where(out.visible[:, None], per_g[:, rk.G_MX:rk.G_MY + 1], 0).astype(dt)
+    v_conics = np.ascontiguousarray(per_g[:, rk.G_A:rk.G_C + 1])
+    v_opac = np.ascontiguousarray(per_g[:, rk.G_O])
+    v_colors = np.ascontiguousarray(per_g[:, rk.G_R:rk.G_BL + 1])
+    v_depths = np.ascontiguousarray(per_g[:, rk.G_Z])
+    o_means, o_ls = np.empty((n, 3), dt), np.empty((n, 3), dt)
+    o_quats, o_logits, o_sh = np.empty((n, 4), dt), np.empty(n, dt), np.empty(sh.shape, dt)
+    parallel_for(gk.gaussians_backward, n, means, log_scales, quats, logits, oscale, sh, w2c,
+                 c["cst"], c["flags"], campos, out.conics, c["comp"], c["o_sig"], c["clamped"],
+                 out.visible, v_means2d, v_conics, v_opac, v_colors, v_depths,
+                 o_means, o_ls, o_quats, o_logits, o_sh, min_chunk=MIN_GAUSSIAN_CHUNK)
+    return Gradients(means=o_means, log_scales=o_ls, quats=o_quats, opacity_logits=o_logits,
+                     sh=o_sh, means2d=v_means2d)
