@@ -1,0 +1,233 @@
+"""Reports: the human-readable summary, the JSON report, reproducer files (ORC-07, ORC-06).
+
+All files are written atomically (a temporary file in the same folder, then ``os.replace``).
+The JSON schema is documented in docs/oracle.md ("The JSON report"); its ``schema`` field is
+:data:`SCHEMA`.  Reproducers are ``.npz`` files of plain arrays and strings, loaded with
+``allow_pickle=False``.
+"""
+from __future__ import annotations
+
+import io
+import json
+import os
+import platform
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+import refgs
+
+from .protocol import Scene
+
+SCHEMA = "refgs-oracle-report/1"
+REPRO_FORMAT = "refgs-oracle-scene/1"
+#: clause status precedence when several checks cite one clause (ORC-02)
+STATUS_ORDER = ("fail", "pass", "not provided", "n/a")
+
+
+# ---------------------------------------------------------------------------------------------
+# atomic files
+# ---------------------------------------------------------------------------------------------
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``data`` to ``path`` via a temporary file in the same folder and os.replace."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def atomic_write_text(path, text: str) -> Path:
+    return atomic_write_bytes(path, text.encode("utf-8"))
+
+
+# ---------------------------------------------------------------------------------------------
+# reproducers
+# ---------------------------------------------------------------------------------------------
+
+
+def save_scene(path, scene: Scene, **meta) -> Path:
+    """Write ``scene`` and string/number ``meta`` (check, clauses, backend, ...) as an .npz."""
+    g, c, cfg = scene.gaussians, scene.camera, scene.config
+    arrays = {f: np.asarray(getattr(g, f), np.float64) for f in refgs.Gaussians.FIELDS}
+    arrays.update(
+        world_to_camera=np.asarray(c.world_to_camera, np.float64), K=np.asarray(c.K, np.float64),
+        width=np.int64(c.width), height=np.int64(c.height), profile=np.str_(str(cfg.profile)),
+        sh_degree=np.int64(-1 if cfg.sh_degree is None else cfg.sh_degree),
+        background=np.asarray(cfg.background, np.float64), antialiased=np.bool_(cfg.antialiased),
+        has_opacity_scale=np.bool_(cfg.opacity_scale is not None),
+        opacity_scale=np.zeros(0) if cfg.opacity_scale is None else np.asarray(cfg.opacity_scale, np.float64),
+        seed=np.int64(scene.seed), label=np.str_(scene.label), format=np.str_(REPRO_FORMAT))
+    for k, v in meta.items():
+        arrays[f"meta_{k}"] = np.str_(v) if isinstance(v, str) else np.asarray(v)
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    return atomic_write_bytes(path, buf.getvalue())
+
+
+def load_scene(path) -> tuple[Scene, dict]:
+    """Inverse of :func:`save_scene`; ValueError naming the file if it is not a reproducer."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            d = {k: z[k] for k in z.files}
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{path}: not a readable .npz reproducer ({exc})") from None
+    if str(d.get("format", "")) != REPRO_FORMAT:
+        raise ValueError(f"{path}: expected an oracle reproducer (format {REPRO_FORMAT}), "
+                         f"got format {d.get('format')!r}")
+    g = refgs.Gaussians(*(d[f] for f in refgs.Gaussians.FIELDS))
+    cam = refgs.Camera(d["world_to_camera"], d["K"], int(d["width"]), int(d["height"]))
+    deg = int(d["sh_degree"])
+    cfg = refgs.RenderConfig(profile=str(d["profile"]), sh_degree=None if deg < 0 else deg,
+                             background=tuple(float(x) for x in d["background"]),
+                             antialiased=bool(d["antialiased"]),
+                             opacity_scale=d["opacity_scale"] if bool(d["has_opacity_scale"]) else None)
+    meta = {k[5:]: (str(v) if v.dtype.kind == "U" else v.tolist()) for k, v in d.items()
+            if k.startswith("meta_")}
+    return Scene(g, cam, cfg, seed=int(d["seed"]), label=str(d["label"])), meta
+
+
+# ---------------------------------------------------------------------------------------------
+# clause table and summaries
+# ---------------------------------------------------------------------------------------------
+
+
+def machine() -> dict:
+    return {"platform": platform.platform(), "python": sys.version.split()[0],
+            "cpu_count": os.cpu_count(), "numpy": np.__version__, "machine": platform.machine()}
+
+
+def clause_table(results, clauses: dict) -> dict:
+    """Per clause: status (fail > pass > not provided > n/a), citing checks, worst ratio (ORC-02)."""
+    table: dict[str, dict] = {}
+    for r in results:
+        for cid in r.check.clauses:
+            status = r.clause_status.get(cid, r.status)
+            row = table.setdefault(cid, {"title": clauses[cid].title if cid in clauses else "(undeclared)",
+                                         "status": "n/a", "checks": [], "worst_ratio": 0.0,
+                                         "reference_only": True})
+            row["checks"].append({"name": r.check.name, "status": status})
+            if STATUS_ORDER.index(status) < STATUS_ORDER.index(row["status"]):
+                row["status"] = status
+            if status in ("pass", "fail") and r.check.kind != "reference":
+                row["reference_only"] = False
+            if r.worst_ratio is not None and np.isfinite(r.worst_ratio):
+                row["worst_ratio"] = max(row["worst_ratio"], float(r.worst_ratio))
+            elif r.worst_ratio is not None:
+                row["worst_ratio"] = float("inf")
+    for row in table.values():
+        if row["status"] not in ("pass", "fail"):
+            row["reference_only"] = False
+    return table
+
+
+def to_json(run) -> dict:
+    """The JSON report (schema in docs/oracle.md)."""
+    be = run.backend
+    table = clause_table(run.results, run.clauses)
+    counts = {s: sum(1 for r in table.values() if r["status"] == s) for s in STATUS_ORDER}
+
+    def ratio(x):
+        return None if x is None else (x if np.isfinite(x) else "inf")
+
+    return {
+        "schema": SCHEMA,
+        "backend": {"spec": be.spec, "name": be.name, "version": be.version, **be.capabilities()},
+        "refgs": {"version": refgs.__version__, "spec_version": refgs.SPEC_VERSION},
+        "oracle": {"version": run.oracle_version},
+        "machine": machine(),
+        "settings": run.settings.to_json(),
+        "started": run.started, "duration_s": round(run.duration, 3),
+        "exit_status": run.exit_status,
+        "summary": counts,
+        "clauses": {cid: {**row, "worst_ratio": ratio(row["worst_ratio"])} for cid, row in table.items()},
+        "checks": [r.to_json() for r in run.results],
+    }
+
+
+def summary_text(run) -> str:
+    """The human-readable report: header, one line per clause, then each failure in full."""
+    be = run.backend
+    table = clause_table(run.results, run.clauses)
+    lines = [f"oracle: backend {be.spec or be.name} ({be.name} {be.version}), profile {be.profile}, {be.dtype}",
+             f"reference refgs {refgs.__version__}, spec {refgs.SPEC_VERSION}; seed {run.settings.seed}, "
+             f"max-examples {run.settings.max_examples}; {len(run.results)} checks in {run.duration:.1f} s",
+             "", f"{'clause':<9}{'status':<16}{'worst/tol':>10}  checks"]
+    from .clauses import clause_sort_key
+    for cid in sorted(table, key=clause_sort_key):
+        row = table[cid]
+        st_ = row["status"] + (" (ref-only)" if row["reference_only"] else "")
+        w = row["worst_ratio"]
+        ws = "-" if row["status"] in ("n/a", "not provided") else ("inf" if not np.isfinite(w) else f"{w:.3g}")
+        names = ", ".join(c["name"] + ("" if c["status"] == row["status"] else f" [{c['status']}]")
+                          for c in row["checks"])
+        lines.append(f"{cid:<9}{st_:<16}{ws:>10}  {names}")
+    tied = [(r.check.name, max(t.get("max_pixels_in_band", 0) for k, t in r.ties.items() if isinstance(t, dict)),
+             r.ties.get("flips", 0)) for r in run.results if any(isinstance(t, dict) for t in r.ties.values())]
+    tied = [t for t in tied if t[1] or t[2]]
+    if tied:
+        lines += ["", "near-ties exempted (most pixels in one example / flips in all, ORC-04): " + ", ".join(
+            f"{name} {n}/{f}" for name, n, f in tied)]
+    unjudged = [r for r in run.results if r.inconclusive]
+    if unjudged:
+        lines += ["", "examples not judged (more near-ties than the budget, ORC-04): " + ", ".join(
+            f"{r.check.name} {r.inconclusive} of {r.examples + r.inconclusive}" for r in unjudged)]
+    fails = [r for r in run.results if r.status == "fail"]
+    if fails:
+        lines += ["", "FAILURES"]
+        for r in fails:
+            f = r.failure
+            lines.append(f"  {' '.join(r.check.clauses[:1])} {r.check.name}: {f['message']}")
+            sc = f.get("scene")
+            if sc is None:
+                continue
+            lines.append(f"    smallest scene: N={sc['n_gaussians']}, {sc['width']}x{sc['height']} px, "
+                         f"profile {sc['profile']}, sh_degree {sc['sh_degree']}, K={sc['sh_coeffs']}, "
+                         f"background {sc['background']}, from {sc['label']!r}")
+            if f.get("parameters"):
+                for line in f["parameters"]:
+                    lines.append(f"      {line}")
+            if f.get("reproducer"):
+                lines.append(f"    reproducer: {f['reproducer']}")
+                lines.append(f"    replay: {f['replay']}")
+    counts = {s: sum(1 for r in table.values() if r["status"] == s) for s in STATUS_ORDER}
+    lines += ["", "clauses: " + ", ".join(f"{counts[s]} {s}" for s in STATUS_ORDER)
+              + f"  -> exit status {run.exit_status}"]
+    return "\n".join(lines)
+
+
+def scene_parameters(scene: Scene, limit: int = 4) -> list[str]:
+    """The Gaussians of a small scene, one line each (for the failure report)."""
+    g = scene.gaussians
+    if scene.n > limit:
+        return []
+    np.set_printoptions(precision=6, suppress=False)
+    out = [f"camera K={np.asarray(scene.camera.K).round(6).tolist()}, "
+           f"world_to_camera={np.asarray(scene.camera.world_to_camera).round(6).tolist()}"]
+    for i in range(scene.n):
+        out.append(f"g[{i}]: mean={g.means[i].tolist()}, log_scales={g.log_scales[i].tolist()}, "
+                   f"quat={g.quats[i].tolist()}, logit={float(g.opacity_logits[i])}, "
+                   f"sh0={g.sh[i, 0].tolist()}")
+    return out
+
+
+def write_report(run, folder) -> tuple[Path, Path]:
+    """report.json and report.txt in ``folder`` (atomic)."""
+    folder = Path(folder)
+    j = atomic_write_text(folder / "report.json", json.dumps(to_json(run), indent=2, sort_keys=False) + "\n")
+    t = atomic_write_text(folder / "report.txt", summary_text(run) + "\n")
+    return j, t

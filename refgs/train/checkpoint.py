@@ -1,0 +1,227 @@
+"""Checkpoints and run directories (clause TRN-09, docs/spec/training.md).
+
+A checkpoint is one ``.npz`` of plain arrays, readable with ``np.load(..., allow_pickle=False)``:
+parameters ``param/<name>``, Adam moments and step counts ``adam/...``, densification statistics
+``densify/...``, curves ``history/...``, method state ``method/...``, and ``meta``: a 0-d string
+holding JSON (iteration, the bit-generator states of the run's random streams, the training-view
+stack, timings).  numpy's PCG64 state is a dict of integers, so it round-trips through JSON
+exactly; no pickle is ever written or read.
+
+A run directory is built under a hidden temporary name next to its final path and renamed to the
+final path at the first checkpoint or at the end (``RunDir.publish``); a run that fails before
+that removes it, so bad input never leaves a partial run directory behind.
+"""
+from __future__ import annotations
+
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import ConfigError, RefgsError
+from ..io.atomic import atomic_save_npz, atomic_write_json, default_mode
+
+#: Format version stored in every checkpoint's meta; loading another version is refused.
+CHECKPOINT_VERSION = 1
+#: File names inside a run directory.
+CHECKPOINT_FILE = "checkpoint.npz"
+CONFIG_FILE = "config.json"
+#: Prefix of the hidden directory a run is built in before it is published.
+PARTIAL_PREFIX = "."
+PARTIAL_SUFFIX = ".partial-"
+
+
+class CheckpointError(RefgsError):
+    """A checkpoint or run directory is missing, corrupt or from another version."""
+
+
+# --- random streams -------------------------------------------------------------------------
+def rng_state(rng: np.random.Generator) -> dict:
+    """The bit generator's state as a JSON-able dict (PCG64: big integers, exact in JSON)."""
+    return rng.bit_generator.state
+
+
+def rng_from_state(state: dict) -> np.random.Generator:
+    name = state.get("bit_generator")
+    if name != "PCG64":
+        raise CheckpointError(f"checkpoint: unsupported bit generator {name!r} (expected PCG64)")
+    bg = np.random.PCG64()
+    bg.state = state
+    return np.random.Generator(bg)
+
+
+# --- checkpoint file ------------------------------------------------------------------------
+def save_checkpoint(path: str | Path, arrays: dict, meta: dict) -> Path:
+    """Write ``arrays`` and ``meta`` (JSON-able) atomically as an npz (TRN-09)."""
+    if "meta" in arrays:
+        raise ValueError("save_checkpoint: 'meta' is reserved")
+    meta = dict(meta, version=CHECKPOINT_VERSION)
+    data = dict(arrays)
+    data["meta"] = np.array(json.dumps(meta))
+    return atomic_save_npz(path, data)
+
+
+def load_checkpoint(path: str | Path) -> tuple[dict, dict]:
+    """``(arrays, meta)`` from a checkpoint written by save_checkpoint; CheckpointError naming the
+    file when it is missing, truncated, not an npz, needs pickle, or has another version."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: checkpoint not found")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    except Exception as exc:
+        raise CheckpointError(f"{path}: unreadable checkpoint ({type(exc).__name__}: "
+                              f"{str(exc).splitlines()[0] if str(exc) else ''})") from None
+    if "meta" not in arrays:
+        raise CheckpointError(f"{path}: not a refgs checkpoint (no 'meta' entry)")
+    try:
+        meta = json.loads(str(arrays.pop("meta")))
+    except ValueError:
+        raise CheckpointError(f"{path}: checkpoint meta is not valid JSON") from None
+    if meta.get("version") != CHECKPOINT_VERSION:
+        raise CheckpointError(f"{path}: checkpoint version {meta.get('version')!r}, this refgs "
+                              f"reads version {CHECKPOINT_VERSION}")
+    return arrays, meta
+
+
+def read_config(run_dir: str | Path) -> dict:
+    """The config.json of a run directory; CheckpointError naming the file when absent/corrupt."""
+    path = Path(run_dir) / CONFIG_FILE
+    if not Path(run_dir).is_dir():
+        raise CheckpointError(f"{run_dir}: run directory not found")
+    if not path.is_file():
+        raise CheckpointError(f"{path}: not found (is {run_dir} a refgs run directory?)")
+    try:
+        return json.loads(path.read_text())
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise CheckpointError(f"{path}: not valid JSON ({exc})") from None
+
+
+# --- run directory --------------------------------------------------------------------------
+class RunDir:
+    """Where a run writes: ``path`` (hidden temporary name until published, then the final one).
+
+    create(final)  a new hidden directory next to ``final``; ConfigError (--out) if ``final``
+                   exists already.
+    publish()      rename to the final path (idempotent).
+    discard()      remove the directory if it was never published.
+    """
+
+    def __init__(self, final: Path, path: Path, published: bool):
+        self.final = Path(final)
+        self.path = Path(path)
+        self.published = published
+
+    @staticmethod
+    def create(final: str | Path) -> "RunDir":
+        final = Path(final).absolute()
+        if final.exists():
+            raise ConfigError(f"--out: {final} already exists (choose a new folder, or continue "
+                              f"it with: refgs train --resume {final})")
+        if not final.parent.is_dir():
+            raise ConfigError(f"--out: parent folder {final.parent} does not exist")
+        tmp = tempfile.mkdtemp(prefix=PARTIAL_PREFIX + final.name + PARTIAL_SUFFIX, dir=final.parent)
+        os.chmod(tmp, default_mode(directory=True))
+        return RunDir(final, Path(tmp), False)
+
+    @staticmethod
+    def existing(path: str | Path) -> "RunDir":
+        path = Path(path).absolute()
+        return RunDir(path, path, True)
+
+    def publish(self) -> None:
+        if self.published:
+            return
+        if self.final.exists():
+            raise ConfigError(f"--out: {self.final} appeared while the run was being built; "
+                              f"the run is kept in {self.path}")
+        os.rename(self.path, self.final)
+        self.path = self.final
+        self.published = True
+
+    def discard(self) -> None:
+        if not self.published:
+            shutil.rmtree(self.path, ignore_errors=True)
+
+    def __truediv__(self, name: str) -> Path:
+        return self.path / name
+
+
+# --- provenance -----------------------------------------------------------------------------
+def _git(args: list[str], cwd: Path) -> str | None:
+    try:
+        res = subprocess.run(["git", *args], cwd=cwd, capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return res.stdout.strip() if res.returncode == 0 else None
+
+
+def _cpu_name() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def source_hash() -> str:
+    """sha256 (16 hex digits) of every ``refgs/**/*.py`` file's path and bytes: a resume compares
+    it with the run's to warn when the code changed (bitwise equality needs the same code)."""
+    import hashlib
+
+    root = Path(__file__).resolve().parents[1]
+    h = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        h.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes() + b"\0")
+    return h.hexdigest()[:16]
+
+
+def provenance() -> dict:
+    """git hash (None outside a git checkout / before the first commit), dirty flag, package
+    versions, CPU, thread settings, Python and platform (recorded in config.json)."""
+    from importlib import metadata
+
+    root = Path(__file__).resolve().parents[2]
+    versions = {}
+    for pkg in ("refgs", "numpy", "scipy", "scikit-image", "pycolmap", "plyfile", "matplotlib",
+                "tqdm", "pillow"):
+        try:
+            versions[pkg] = metadata.version(pkg)
+        except metadata.PackageNotFoundError:
+            versions[pkg] = None
+    status = _git(["status", "--porcelain", "--untracked-files=no"], root)
+    try:
+        affinity = len(os.sched_getaffinity(0))
+    except AttributeError:
+        affinity = os.cpu_count()
+    return {
+        "git_hash": _git(["rev-parse", "HEAD"], root),
+        "source_hash": source_hash(),
+        "git_dirty": None if status is None else bool(status),
+        "packages": versions,
+        "python": sys.version.split()[0],
+        "platform": platform.platform(),
+        "cpu": _cpu_name(),
+        "cpu_count": os.cpu_count(),
+        "threads_available": affinity,
+        "thread_env": {k: os.environ.get(k) for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS",
+                                                        "MKL_NUM_THREADS")},
+    }
+
+
+def write_config(run: RunDir, config: dict) -> Path:
+    return atomic_write_json(run / CONFIG_FILE, config)
+
+
+__all__ = ["save_checkpoint", "load_checkpoint", "read_config", "write_config", "RunDir",
+           "provenance", "source_hash", "rng_state", "rng_from_state", "CheckpointError",
+           "CHECKPOINT_FILE", "CONFIG_FILE", "CHECKPOINT_VERSION"]

@@ -1,0 +1,354 @@
+"""The training loop of 3DGS as the sparse-view papers run it (clauses TRN-01..TRN-08).
+
+One iteration t (1-based, as 3DGS ``train.py``@82bc469; peers.md 1.6, 1.7, 3.1):
+
+    1. learning rates for t (position lr decays to t = T), active SH degree for t
+    2. pop a training view from a shuffled stack (refilled when empty); draw the background
+    3. method.render_request -> Gaussians (+ per-Gaussian opacity_scale) to render
+    4. backend.render; clamp the image to [0, 1] (DropGaussian); loss L1 + 0.2 (1 - SSIM);
+       backend.render_backward with the clamp's gradient mask
+    5. method.param_gradients -> gradients of the stored (unperturbed) parameters
+    6. densification statistics, densify-and-prune, opacity reset (while t < until)
+    7. Adam step (not at t = T, not for tensors replaced in step 6: as 3DGS), method.after_step
+
+The trainer reaches the renderer only through ``backend`` (refgs.train.backend) and the method
+only through the ``Method`` hooks below, so a faster backend, the flat-minima method (perturbed
+positions at render time, gradients applied to the unperturbed parameters, periodic reinit with
+frozen windows) or DropGaussian (opacity_scale) plug in without changing this loop.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass, field, fields
+
+import numpy as np
+
+from ..errors import ConfigError, RefgsError
+from ..metrics.psnr import psnr
+from ..types import Gaussians, RenderConfig
+from .adam import Adam
+from .densify import DensifyConfig, DensifyStats, densify_and_prune, densify_preset, reset_opacity
+from .loss import FORM_L1_PLUS, LAMBDA_DSSIM, LOSS_FORMS, photometric_loss
+from .schedule import SH_MAX_DEGREE, learning_rates, sh_degree_at
+
+#: Background choices: black (DropGaussian default, ``random_background False``), white
+#: (3DGS ``--white_background``), random (3DGS ``--random_background``: a uniform colour per
+#: iteration from the run's random stream; evaluation then uses black).  [TRN-07]
+BACKGROUNDS = {"black": (0.0, 0.0, 0.0), "white": (1.0, 1.0, 1.0), "random": None}
+#: Weight of the newest loss in the progress bar's running mean (3DGS ``ema_loss_for_log``).
+LOSS_EMA_WEIGHT = 0.4
+#: Independent random streams of a run, spawned from its seed in this order (TRN-09).
+RNG_STREAMS = ("views", "densify", "method")
+DTYPES = {"float64": np.float64, "float32": np.float32}
+PARAM_NAMES = Gaussians.FIELDS
+
+
+class TrainingDiverged(RefgsError):
+    """The loss became NaN or infinite."""
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Every setting of a run (written to config.json; TRN-07)."""
+
+    scene: str
+    views: int
+    iters: int
+    seed: int = 0
+    images: str = "images_8"
+    resolution: float | None = None
+    method: str = "3dgs"
+    method_params: dict = field(default_factory=dict)
+    backend: str = "reference"
+    init_points: str = "train-views"
+    checkpoint_every: int = 1000
+    eval_every: int | None = None
+    strict: bool = False
+    dtype: str = "float64"
+    profile: str = "inria"
+    sh_degree: int = SH_MAX_DEGREE
+    background: str = "black"
+    loss_form: str = FORM_L1_PLUS
+    lambda_dssim: float = LAMBDA_DSSIM
+    clamp_render: bool = True
+    densify_preset: str = "dropgaussian"
+    densify: DensifyConfig = field(default_factory=DensifyConfig)
+    holdout: int = 8
+    triangulation: str = "tuned"
+    lpips: bool = True
+
+    def validate(self) -> "TrainConfig":
+        def positive(name, v, zero_ok=False):
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < (0 if zero_ok else 1):
+                raise ConfigError(f"--{name.replace('_', '-')}: expected a "
+                                  f"{'non-negative' if zero_ok else 'positive'} integer, got {v!r}")
+        positive("iters", self.iters)
+        positive("views", self.views)
+        positive("checkpoint_every", self.checkpoint_every, zero_ok=True)
+        if self.eval_every is not None:
+            positive("eval_every", self.eval_every, zero_ok=True)
+        if not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
+            raise ConfigError(f"--seed: expected a non-negative integer, got {self.seed!r}")
+        if self.dtype not in DTYPES:
+            raise ConfigError(f"--dtype: expected one of {sorted(DTYPES)}, got {self.dtype!r}")
+        if self.background not in BACKGROUNDS:
+            raise ConfigError(f"--background: expected one of {sorted(BACKGROUNDS)}, got {self.background!r}")
+        if self.loss_form not in LOSS_FORMS:
+            raise ConfigError(f"--loss-form: expected one of {LOSS_FORMS}, got {self.loss_form!r}")
+        if not 0.0 <= self.lambda_dssim <= 1.0:
+            raise ConfigError(f"--lambda-dssim: expected a value in [0, 1], got {self.lambda_dssim!r}")
+        if not 0 <= self.sh_degree <= SH_MAX_DEGREE:
+            raise ConfigError(f"--sh-degree: expected 0..{SH_MAX_DEGREE}, got {self.sh_degree!r}")
+        if self.profile not in ("inria", "gsplat"):
+            raise ConfigError(f"--profile: expected inria or gsplat, got {self.profile!r}")
+        self.densify.validate()
+        return self
+
+    @property
+    def eval_interval(self) -> int:
+        """Test-PSNR interval; default T // 10 (0 = only at the end)."""
+        return max(1, self.iters // 10) if self.eval_every is None else int(self.eval_every)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["densify"] = self.densify.to_dict()
+        return d
+
+    @staticmethod
+    def from_dict(d: dict) -> "TrainConfig":
+        names = {f.name for f in fields(TrainConfig)}
+        unknown = set(d) - names
+        if unknown:
+            raise ConfigError(f"config.json: unknown settings {sorted(unknown)}")
+        kw = dict(d)
+        kw["densify"] = DensifyConfig(**kw.get("densify", {}))
+        return TrainConfig(**kw)
+
+    @staticmethod
+    def with_preset(preset: str = "dropgaussian", densify_overrides: dict | None = None, **kw):
+        return TrainConfig(densify_preset=preset,
+                           densify=densify_preset(preset, **(densify_overrides or {})), **kw)
+
+
+@dataclass
+class RenderRequest:
+    """What a method asks the backend to render: Gaussians and an optional (N,) opacity scale."""
+
+    gaussians: Gaussians
+    opacity_scale: np.ndarray | None = None
+    extra: dict = field(default_factory=dict)
+
+
+class Method:
+    """Plain 3DGS; the base of every training method (TRN-08).
+
+    Hooks (all optional to override; ``trainer`` exposes params, adam, stats, t, cfg, extent):
+      render_request(trainer, t, rng)   what to render this iteration (e.g. perturbed positions,
+                                        DropGaussian's opacity_scale)
+      param_gradients(trainer, t, request, grads) -> dict name -> gradient of the stored
+                                        parameters (e.g. apply perturbed-position gradients to the
+                                        unperturbed means)
+      frozen_rows(trainer, t)           None or name -> (N,) bool rows Adam must leave unchanged
+      after_densify(trainer, remap)     keep per-Gaussian method state on its rows (remap.parent)
+      after_step(trainer, t, rng)       e.g. periodic re-initialisation
+      state_arrays / load_state_arrays  method state for checkpoints (plain arrays)
+    """
+
+    name = "3dgs"
+
+    def setup(self, trainer) -> None:
+        pass
+
+    def render_request(self, trainer, t: int, rng: np.random.Generator) -> RenderRequest:
+        return RenderRequest(trainer.gaussians())
+
+    def param_gradients(self, trainer, t: int, request: RenderRequest, grads) -> dict:
+        return grads.params()
+
+    def frozen_rows(self, trainer, t: int):
+        return None
+
+    def after_densify(self, trainer, remap) -> None:
+        pass
+
+    def after_step(self, trainer, t: int, rng: np.random.Generator) -> None:
+        pass
+
+    def state_arrays(self) -> dict:
+        return {}
+
+    def load_state_arrays(self, arrays: dict) -> None:
+        pass
+
+
+#: --method name -> factory of a Method; only "3dgs" for now (register_method adds others).
+METHODS = {"3dgs": Method}
+
+
+def register_method(name: str, factory) -> None:
+    """Make ``factory()`` (a Method) available as ``--method name``."""
+    METHODS[str(name)] = factory
+
+
+def get_method(name: str, params: dict | None = None) -> Method:
+    """``METHODS[name](**params)``; ConfigError naming --method when unknown."""
+    if name not in METHODS:
+        raise ConfigError(f"--method: expected one of {sorted(METHODS)}, got {name!r}")
+    return METHODS[name](**(params or {}))
+
+
+@dataclass
+class View:
+    """A training or test view: name, refgs.Camera, image (H, W, 3) in [0, 1]."""
+
+    name: str
+    camera: object
+    image: np.ndarray
+
+
+class Trainer:
+    """State and loop of one run (TRN-01..TRN-08).  ``params``: name -> array (refgs.Gaussians
+    fields); everything needed to continue bit-exactly is in ``state_arrays`` / ``state_meta``."""
+
+    def __init__(self, cfg: TrainConfig, train_views: list, test_views: list, params: dict,
+                 extent: float, backend, method: Method | None = None):
+        self.cfg = cfg
+        self.train_views = list(train_views)
+        self.test_views = list(test_views)
+        self.params = {k: np.array(params[k], dtype=DTYPES[cfg.dtype]) for k in PARAM_NAMES}
+        self.extent = float(extent)
+        self.backend = backend
+        self.method = method if method is not None else get_method(cfg.method, cfg.method_params)
+        self.adam = Adam(self.params)
+        self.stats = DensifyStats(len(self.params["means"]))
+        self.t = 0
+        seeds = np.random.SeedSequence(int(cfg.seed)).spawn(len(RNG_STREAMS))
+        self.rngs = {k: np.random.Generator(np.random.PCG64(s)) for k, s in zip(RNG_STREAMS, seeds)}
+        self.view_stack: list[int] = []
+        self.history = {k: [] for k in ("train_t", "train_loss", "train_psnr", "test_t",
+                                        "test_psnr", "n_gaussians", "iter_seconds",
+                                        "iter_cpu_seconds")}
+        self.train_seconds = 0.0
+        self.loss_ema = 0.0
+        self.method.setup(self)
+
+    # --- parameters -----------------------------------------------------------------------
+    def gaussians(self) -> Gaussians:
+        return Gaussians(**{k: self.params[k] for k in PARAM_NAMES})
+
+    @property
+    def n(self) -> int:
+        return len(self.params["means"])
+
+    def eval_background(self) -> tuple:
+        return BACKGROUNDS[self.cfg.background] or BACKGROUNDS["black"]
+
+    # --- one iteration --------------------------------------------------------------------
+    def step(self) -> dict:
+        """Run iteration t = self.t + 1 (module docstring); returns loss, psnr, view."""
+        cfg, dcfg = self.cfg, self.cfg.densify
+        t0, c0 = time.perf_counter(), time.process_time()
+        t, horizon = self.t + 1, cfg.iters
+        k = self.params["sh"].shape[1]
+        lrs = learning_rates(t, horizon, self.extent, k)
+        degree = sh_degree_at(t, cfg.sh_degree)
+        rng = self.rngs["views"]
+        if not self.view_stack:
+            self.view_stack = list(range(len(self.train_views)))
+        view = self.train_views[self.view_stack.pop(int(rng.integers(len(self.view_stack))))]
+        bg = BACKGROUNDS[cfg.background]
+        bg = tuple(float(x) for x in rng.random(3)) if bg is None else bg
+
+        request = self.method.render_request(self, t, self.rngs["method"])
+        rcfg = RenderConfig(profile=cfg.profile, sh_degree=degree, background=bg,
+                            opacity_scale=request.opacity_scale)
+        out = self.backend.render(request.gaussians, view.camera, rcfg)
+        image = out.image
+        shown = np.clip(image, 0.0, 1.0)
+        loss, v_image = photometric_loss(shown if cfg.clamp_render else image, view.image,
+                                         cfg.lambda_dssim, cfg.loss_form)
+        if not np.isfinite(loss):
+            raise TrainingDiverged(f"training diverged at iteration {t}: loss is {loss}")
+        if cfg.clamp_render:  # torch.clamp passes the gradient where min <= x <= max
+            v_image = v_image * ((image >= 0.0) & (image <= 1.0))
+        grads = self.backend.render_backward(out, v_image)
+        pgrads = self.method.param_gradients(self, t, request, grads)
+
+        skip: set = set()
+        if t < dcfg.resolved_until(horizon):
+            self.stats.accumulate(grads.means2d, out.radii, view.camera.width, view.camera.height)
+            if t > dcfg.start and t % dcfg.interval == 0:
+                size_active = dcfg.size_prune and t > dcfg.opacity_reset_interval
+                remap = densify_and_prune(self.params, self.stats, self.adam, dcfg, self.extent,
+                                          size_active, self.rngs["densify"])
+                self.method.after_densify(self, remap)
+                skip = set(PARAM_NAMES)  # replaced tensors carry no gradient in 3DGS
+            if t % dcfg.opacity_reset_interval == 0 or (cfg.background == "white" and t == dcfg.start):
+                reset_opacity(self.params, self.adam)
+                skip.add("opacity_logits")
+        if t < horizon and len(skip) < len(PARAM_NAMES):
+            self.adam.step(self.params, pgrads, lrs, skip=skip,
+                           frozen_rows=self.method.frozen_rows(self, t))
+        self.method.after_step(self, t, self.rngs["method"])
+
+        self.t = t
+        value = psnr(shown, view.image)
+        self.loss_ema = LOSS_EMA_WEIGHT * loss + (1 - LOSS_EMA_WEIGHT) * self.loss_ema
+        seconds = time.perf_counter() - t0
+        for key, v in (("train_t", t), ("train_loss", loss), ("train_psnr", value),
+                       ("n_gaussians", self.n), ("iter_seconds", seconds),
+                       ("iter_cpu_seconds", time.process_time() - c0)):
+            self.history[key].append(v)
+        self.train_seconds += seconds
+        return {"t": t, "loss": loss, "psnr": value, "view": view.name}
+
+    # --- evaluation -----------------------------------------------------------------------
+    def render_view(self, view: View) -> np.ndarray:
+        """Plain render of the stored parameters, clamped to [0, 1] (TRN-07)."""
+        rcfg = RenderConfig(profile=self.cfg.profile, sh_degree=sh_degree_at(self.t, self.cfg.sh_degree),
+                            background=self.eval_background())
+        return np.clip(self.backend.render(self.gaussians(), view.camera, rcfg).image, 0.0, 1.0)
+
+    def test_psnr(self) -> float:
+        """Mean PSNR over the test views (recorded in the history)."""
+        value = float(np.mean([psnr(self.render_view(v), v.image) for v in self.test_views]))
+        self.history["test_t"].append(self.t)
+        self.history["test_psnr"].append(value)
+        return value
+
+    # --- checkpoint state -----------------------------------------------------------------
+    def state_arrays(self) -> dict:
+        out = {f"param/{k}": v for k, v in self.params.items()}
+        out.update(self.adam.state_arrays())
+        out.update(self.stats.state_arrays())
+        out.update({f"history/{k}": np.asarray(v, dtype=np.float64) for k, v in self.history.items()})
+        out.update({f"method/{k}": v for k, v in self.method.state_arrays().items()})
+        return out
+
+    def state_meta(self) -> dict:
+        from .checkpoint import rng_state
+        return {"iteration": self.t, "rng": {k: rng_state(r) for k, r in self.rngs.items()},
+                "view_stack": list(self.view_stack), "train_seconds": self.train_seconds,
+                "loss_ema": self.loss_ema, "method": self.method.name, "n_gaussians": self.n}
+
+    def load_state(self, arrays: dict, meta: dict) -> None:
+        from .checkpoint import rng_from_state
+        dt = DTYPES[self.cfg.dtype]
+        self.params = {k: np.array(arrays[f"param/{k}"], dtype=dt) for k in PARAM_NAMES}
+        self.adam = Adam(self.params)
+        self.adam.load_state_arrays(arrays)
+        self.stats.load_state_arrays(arrays)
+        for k in self.history:
+            vals = np.asarray(arrays.get(f"history/{k}", []), np.float64).tolist()
+            self.history[k] = [int(v) for v in vals] if k.endswith("_t") or k == "n_gaussians" else vals
+        self.method.load_state_arrays({k[7:]: v for k, v in arrays.items() if k.startswith("method/")})
+        self.t = int(meta["iteration"])
+        self.rngs = {k: rng_from_state(meta["rng"][k]) for k in RNG_STREAMS}
+        self.view_stack = [int(i) for i in meta["view_stack"]]
+        self.train_seconds = float(meta["train_seconds"])
+        self.loss_ema = float(meta["loss_ema"])
+
+
+__all__ = ["TrainConfig", "Trainer", "Method", "RenderRequest", "View", "METHODS", "get_method",
+           "register_method",
+           "BACKGROUNDS", "TrainingDiverged", "RNG_STREAMS", "DTYPES"]
