@@ -5,6 +5,7 @@
     python -m oracle list-clauses [--all]
     python -m oracle replay FILE.npz --backend module:object
     python -m oracle calibrate --backend module:object [--max-examples N] [--seed S]
+    python -m oracle tolerances
 
 ``check`` exits 0 exactly when no clause failed ("not provided" and "n/a" do not fail), 1 when
 some clause failed, 2 on a usage error (bad backend, unknown clause).  The module in
@@ -47,6 +48,7 @@ def _parser() -> argparse.ArgumentParser:
     k.add_argument("--backend", required=True)
     k.add_argument("--max-examples", type=int, default=100)
     k.add_argument("--seed", type=int, default=0)
+    sub.add_parser("tolerances", help="print the tolerance table (ORC-03) as Markdown")
     return p
 
 
@@ -151,11 +153,17 @@ def cmd_calibrate(a) -> int:
     return 0
 
 
+def cmd_tolerances(a) -> int:
+    from .tolerances import markdown_table
+    sys.stdout.write(markdown_table())
+    return 0
+
+
 def main(argv=None) -> int:
     a = _parser().parse_args(argv)
     np.seterr(all="ignore")
     return {"check": cmd_check, "list-clauses": cmd_list, "replay": cmd_replay,
-            "calibrate": cmd_calibrate}[a.cmd](a)
+            "calibrate": cmd_calibrate, "tolerances": cmd_tolerances}[a.cmd](a)
 
 
 if __name__ == "__main__":

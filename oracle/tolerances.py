@@ -243,3 +243,38 @@ def rows() -> list[dict]:
                      min_mag_ratio=t.min_mag_ratio, measured_rel_l2=t.measured_rel_l2)
         out.append(d)
     return out
+
+
+def _g(x) -> str:
+    return "–" if x is None else f"{x:.2g}"
+
+
+def markdown_table() -> str:
+    """The table as Markdown (docs/oracle.md embeds exactly this; ``python -m oracle tolerances``).
+
+    One row per (stage, output, dtype); the near-tie bands follow as a second table.
+    """
+    lines = ["| stage | output | dtype | rtol | atol | scaled | rel L2 | cosine | mag ratio "
+             "| measured atol | measured rel L2 | rationale |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows():
+        if r["exact"]:
+            bound = ("exact", "exact")
+        else:
+            bound = (_g(r["rtol"]), _g(r["atol"]))
+        grad = (_g(r.get("max_rel_l2")), f"{r['min_cosine']:.12g}" if "min_cosine" in r else "–",
+                _g(r.get("min_mag_ratio"))) if "max_rel_l2" in r else ("–", "–", "–")
+        lines.append(f"| {r['stage']} | {r['output']} | {r['dtype']} | {bound[0]} | {bound[1]} "
+                     f"| {'per Gaussian' if r['scaled'] else 'absolute'} | {grad[0]} | {grad[1]} "
+                     f"| {grad[2]} | {_g(r['measured'])} | {_g(r.get('measured_rel_l2'))} "
+                     f"| {r['rationale']} |")
+    lines += ["", "Near-tie bands (ORC-04), relative distance of the float64 reference to each "
+              "threshold within which a decision counts as a near-tie:", "",
+              "| dtype | alpha 1/255 | T stop | depth order | geometry | cap | SH clamp "
+              "| max fraction of pixels | at least | rationale |",
+              "|---|---|---|---|---|---|---|---|---|---|"]
+    for dt, b in sorted(TIE_BANDS.items()):
+        lines.append(f"| {dt} | {b.alpha:.0e} | {b.stop:.0e} | {b.depth:.0e} | {b.geom:.0e} "
+                     f"| {b.cap:.0e} | {b.sh:.0e} | {b.max_fraction:g} | {b.min_allowed} "
+                     f"| {b.rationale} |")
+    return "\n".join(lines) + "\n"

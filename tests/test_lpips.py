@@ -95,7 +95,10 @@ def test_conv2d_relu_matches_loops_and_chunking(shape, ksize, stride, pad):
     one_row = conv2d_relu(x[None], k, b, stride, pad, chunk_bytes=1)[0]
     assert full.shape == ref.shape and full.dtype == np.float32
     np.testing.assert_allclose(full, ref, rtol=0, atol=1e-4)
-    np.testing.assert_array_equal(full, one_row)
+    # chunking changes only how BLAS blocks the float32 products (M differs), so the bands agree
+    # to float32 accumulation rounding: K = kh*kw*Cin terms, each rounded at eps 6e-8
+    scale = np.abs(ref).max()
+    np.testing.assert_allclose(one_row, full, rtol=0, atol=4 * 2.0 ** -23 * scale)
     np.testing.assert_allclose(batch[1], full, rtol=0, atol=1e-5)
 
 

@@ -116,6 +116,16 @@ def test_orc03_every_row_has_a_rationale_and_gradient_rows_have_whole_tensor_lim
         tl.lookup("render", "image", "float16")
 
 
+def test_orc03_docs_show_the_table_as_it_is():
+    """docs/oracle.md embeds ``python -m oracle tolerances`` verbatim between its markers."""
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "oracle.md").read_text(encoding="utf-8")
+    begin, end = "<!-- tolerance-table:begin -->\n", "<!-- tolerance-table:end -->"
+    assert begin in doc and end in doc
+    embedded = doc.split(begin, 1)[1].split(end, 1)[0]
+    assert embedded == tl.markdown_table(), "regenerate with: python -m oracle tolerances"
+    assert embedded.count("\n| ") == len(tl.TABLE) + 1 + len(tl.TIE_BANDS)   # rows, tie header, ties
+
+
 def test_orc03_float32_rows_are_tighter_than_float32_noise_would_need_and_not_looser_than_planted_bugs():
     """The float32 image row must be far below what the planted half-pixel shift produces."""
     t = tl.lookup("render", "image", "float32")

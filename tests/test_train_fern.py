@@ -1,7 +1,7 @@
 """A short fern 3-view run with the reference backend (slow; docs/spec/training.md TRN-01..TRN-10).
 
 Run with ``pytest -m slow tests/test_train_fern.py``.  Takes tens of minutes on 2 cores (about
-5-10 s per iteration on 504 x 378 images, see the measurements in docs/spec/training.md).
+4 s per iteration on 504 x 378 images, see the measurements in docs/spec/training.md).
 """
 from __future__ import annotations
 
