@@ -7,6 +7,7 @@
     refgs eval RUN_DIR [--model PATH.ply] [--no-lpips]
     refgs render RUN_DIR [--split test|train|all]
     refgs demo [--out DIR] [--iters N]
+    refgs bench [--n N ...] [--size WxH ...] [--backends ...] [--fern-run RUN] [--out DIR]
 
 Bad input (missing folder, corrupt model, empty image folder, unsupported camera, --views too
 large, ...) ends with ONE line ``refgs: error: ...`` on stderr naming the file or flag, exit
@@ -496,6 +497,9 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--out")
     m.add_argument("--iters", type=int, default=DEMO_ITERS)
     m.add_argument("--quiet", action="store_true")
+
+    from .bench import add_parser as _add_bench
+    _add_bench(sub)
     return p
 
 
@@ -586,6 +590,9 @@ def main(argv: list | None = None) -> int:
             print(render_run(args.run_dir, args.split))
         elif args.command == "demo":
             demo(args.out, args.iters, progress=not args.quiet)
+        elif args.command == "bench":
+            from .bench import run as bench_run
+            bench_run(args)
         return 0
     except RefgsError as exc:
         print(f"refgs: error: {_one_line(exc)}", file=sys.stderr)

@@ -1,0 +1,466 @@
+"""``refgs bench``: speed against error for every available backend (docs/performance.md).
+
+    refgs bench [--n 1000 10000 50000 200000] [--size 128x128 504x378 1008x756]
+                [--backends ref64 ref32 fast64 fast32 torch64 torch32 gsplat]
+                [--fern-run RUN_DIR] [--repeats 3] [--profile inria] [--out DIR]
+
+For each scene (the seeded synthetic scene of ``refgs.synthetic.benchmark_scene`` at every N and
+image size, and optionally fern ``images_8`` with the Gaussians of a saved fern run) every
+available backend renders and differentiates the same float32-representable inputs (the scene
+is rounded to float32 once, so float32 backends see exactly what float64 ones see).  Timing:
+the first call of each backend (numba compilation or on-disk cache load, torch warm-up) is
+reported separately; then ``--repeats`` rounds each time every backend in turn (interleaved, so a
+changing load hits all alike); medians of ``time.perf_counter``.
+
+Error, against the float64 reference ``refgs.render``/``refgs.render_backward`` on the same
+inputs (where the reference is not run -- larger than :data:`LIMITS` -- against ``refgs.fast`` at
+float64, which the oracle certifies equal to the reference to 1e-12; the table says which):
+
+* image: max |difference| over pixels; for float32 backends outside the near-tie pixels that
+  ``refgs.fast.ties.find_ties`` flags on the float64 render (alpha at 1/255, the T stop, depth
+  order, geometry), whose count is reported beside it -- never hidden by a looser tolerance;
+* gradients: for L = <v, image> with a seeded normal cotangent v (zeroed on backward near-ties
+  for float32 backends, and the kink-tied Gaussians' rows left out), the worst field's relative
+  L2 error and the worst element, |got - ref| / max|ref| of its field.
+
+Writes ``bench.json``, ``bench.csv``, ``pareto.png`` (time against error) and ``scaling.png``
+(time against pixel-Gaussian pairs, with the fitted growth exponent per backend) into ``--out``.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import os
+import platform
+import resource
+import statistics
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from .errors import ConfigError
+from .io.atomic import atomic_write_json, atomic_write_text
+from .synthetic import benchmark_scene
+from .types import RenderConfig
+
+DEFAULT_NS = (1_000, 10_000, 50_000, 200_000)
+DEFAULT_SIZES = ("128x128", "504x378", "1008x756")
+#: The largest scene (Gaussians, pixels) a slow backend is timed on: the numpy reference up to
+#: 50k at 504x378 (issue 7: beyond that one render takes minutes), the torch transcription up to
+#: 10k at 504x378 (18 s per forward + backward there on the 2-core machine; it is a correctness
+#: cross-check written for clarity, not speed).
+LIMITS = {"ref64": (50_000, 504 * 378), "ref32": (50_000, 504 * 378),
+          "torch64": (10_000, 504 * 378), "torch32": (10_000, 504 * 378)}
+#: seed of the cotangent v of L = <v, image>
+COTANGENT_SEED = 1
+#: seed of the synthetic scenes (refgs.synthetic.benchmark_scene)
+SCENE_SEED = 0
+#: targets of issue 7, checked and printed for the 50k / 504x378 scene
+TARGET_SCENE = (50_000, "504x378")
+TARGET_SPEEDUP = 30.0
+TARGET_IMAGE_ERR = 1e-5
+TARGET_TIE_FRACTION = 1e-4
+TARGET_GRAD_REL_L2 = 1e-4
+GRAD_FIELDS = ("means", "log_scales", "quats", "opacity_logits", "sh", "means2d")
+
+
+class Unavailable(Exception):
+    """A backend that cannot run here (reason in the message)."""
+
+
+@dataclass
+class BenchBackend:
+    name: str
+    label: str
+    dtype: str
+    render: Callable
+    backward: Callable
+
+
+def _make_backend(name: str, profile: str) -> BenchBackend:
+    """The backend ``name`` (see ``--backends``), or Unavailable naming the missing piece."""
+    dt = "float64" if name.endswith("64") else "float32"
+    if name in ("ref64", "ref32"):
+        from .render import render, render_backward
+        return BenchBackend(name, f"refgs reference {dt}", dt, render, render_backward)
+    if name in ("fast64", "fast32"):
+        try:
+            from . import fast
+        except ImportError as e:
+            raise Unavailable(str(e)) from None
+        return BenchBackend(name, f"refgs.fast {dt}", dt, fast.render, fast.render_backward)
+    if name in ("torch64", "torch32"):
+        try:
+            from oracle.adapters.torch_backend import TorchBackend
+            be = TorchBackend(profile, dt)
+        except ImportError as e:
+            raise Unavailable(f"torch transcription: {e}") from None
+        return BenchBackend(name, f"torch autograd transcription {dt}", dt, be.render,
+                            be.render_backward)
+    if name == "gsplat":
+        try:
+            from oracle.adapters.gsplat_backend import gsplat_backend as be
+        except ImportError as e:
+            raise Unavailable(f"gsplat: {e}") from None
+        if be.unavailable_reason:
+            raise Unavailable(be.unavailable_reason)
+        return BenchBackend(name, "gsplat 1.5.3 rasterization float32", "float32", be.render,
+                            be.render_backward)
+    raise ConfigError(f"--backends: unknown backend {name!r}; expected one of {', '.join(ALL_BACKENDS)}")
+
+
+ALL_BACKENDS = ("ref64", "ref32", "fast64", "fast32", "torch64", "torch32", "gsplat")
+
+
+def _peak_rss_gb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 ** 2
+
+
+def _parse_size(s: str) -> tuple[int, int]:
+    try:
+        w, h = (int(x) for x in s.lower().split("x"))
+        if w < 1 or h < 1:
+            raise ValueError
+        return w, h
+    except ValueError:
+        raise ConfigError(f"--size: expected WIDTHxHEIGHT with positive integers, got {s!r}") from None
+
+
+def synthetic_scenes(ns, sizes):
+    """(label, n, size, gaussians float64 with float32-representable values, camera)."""
+    for size in sizes:
+        w, h = _parse_size(size)
+        for n in ns:
+            g, cam = benchmark_scene(n, w, h, seed=SCENE_SEED)
+            yield f"synthetic N={n} {w}x{h}", n, f"{w}x{h}", g.astype(np.float32).astype(np.float64), cam
+
+
+def fern_scene(run_dir: str | Path):
+    """The first test view of a saved run (its camera) and the run's model.ply."""
+    from .cli import MODEL_FILE, _restore
+    from .io.ply import read_gaussians_ply
+    run_dir = Path(run_dir).absolute()
+    _, cfg, trainer = _restore(run_dir)
+    g = read_gaussians_ply(run_dir / MODEL_FILE, np.float64)
+    view = trainer.test_views[0]
+    cam = view.camera
+    size = f"{cam.width}x{cam.height}"
+    return (f"{Path(cfg.scene).name} {cfg.views}-view run ({view.name})", len(g), size,
+            g.astype(np.float32).astype(np.float64), cam)
+
+
+def _within(name: str, n: int, size: str) -> bool:
+    if name not in LIMITS:
+        return True
+    w, h = _parse_size(size)
+    return n <= LIMITS[name][0] and w * h <= LIMITS[name][1]
+
+
+def _timed(fn, *args):
+    t = time.perf_counter()
+    r = fn(*args)
+    return r, time.perf_counter() - t
+
+
+def _grad_errors(got, ref, rows=None) -> dict:
+    worst_l2, worst_field, worst_el = 0.0, None, 0.0
+    for f in GRAD_FIELDS:
+        a = np.asarray(getattr(got, f), np.float64)
+        b = np.asarray(getattr(ref, f), np.float64)
+        if rows is not None:
+            a, b = a[rows], b[rows]
+        nb, mb = np.linalg.norm(b), np.max(np.abs(b), initial=0.0)
+        l2 = float(np.linalg.norm(a - b) / nb) if nb > 0 else float(np.linalg.norm(a))
+        el = float(np.max(np.abs(a - b), initial=0.0) / mb) if mb > 0 else float(np.max(np.abs(a), initial=0.0))
+        if l2 >= worst_l2:
+            worst_l2, worst_field = l2, f
+        worst_el = max(worst_el, el)
+    return {"grad_rel_l2": worst_l2, "grad_worst_field": worst_field, "grad_worst_element": worst_el}
+
+
+def bench_scene(label, n, size, g64, cam, backends, repeats: int, profile: str) -> dict:
+    """Time and compare every backend on one scene (module docstring)."""
+    cfg = RenderConfig(profile=profile)
+    w, h = _parse_size(size)
+    v = np.random.default_rng(COTANGENT_SEED).normal(size=(h, w, 3))
+    inputs = {"float64": g64, "float32": g64.astype(np.float32)}
+    active = [b for b in backends if _within(b.name, n, size)]
+    res = {"scene": label, "n": int(n), "size": size, "profile": profile, "backends": {},
+           "skipped": sorted(b.name for b in backends if b not in active)}
+    first = {}
+    for b in active:
+        out, tf = _timed(b.render, inputs[b.dtype], cam, cfg)
+        _, tb = _timed(b.backward, out, v.astype(b.dtype))
+        first[b.name] = {"forward_s": tf, "backward_s": tb}
+    times = {b.name: {"fwd": [], "bwd": []} for b in active}
+    outs = {}
+    for _ in range(repeats):
+        for b in active:
+            out, tf = _timed(b.render, inputs[b.dtype], cam, cfg)
+            grads, tb = _timed(b.backward, out, v.astype(b.dtype))
+            times[b.name]["fwd"].append(tf)
+            times[b.name]["bwd"].append(tb)
+            outs[b.name] = (out, grads)
+    ref_name = "ref64" if "ref64" in outs else ("fast64" if "fast64" in outs else None)
+    res["error_reference"] = ref_name
+    ties = None
+    if "fast64" in outs:
+        from .fast.ties import find_ties
+        ties = find_ties(outs["fast64"][0])
+        res["pixel_gaussian_pairs"] = 256 * int(outs["fast64"][0].cache["lists"]["gauss"].size)
+    elif "ref64" in outs:
+        res["pixel_gaussian_pairs"] = 256 * int(outs["ref64"][0].cache["lists"]["gauss"].size)
+    refs = {}
+    if ref_name is not None:
+        ref_out, ref_g = outs[ref_name]
+        ref_be = next(b for b in active if b.name == ref_name)
+        refs["float64"] = (ref_out, ref_g, None)
+        if ties is not None:
+            v_masked = np.where(ties["backward"][..., None], 0.0, v)
+            refs["float32"] = (ref_out, ref_be.backward(ref_out, v_masked), ~ties["kink_gaussians"])
+        else:
+            refs["float32"] = refs["float64"]
+    for b in active:
+        t = times[b.name]
+        fwd, bwd = statistics.median(t["fwd"]), statistics.median(t["bwd"])
+        row = {"label": b.label, "dtype": b.dtype, "forward_s": fwd, "backward_s": bwd,
+               "forward_backward_s": statistics.median(np.add(t["fwd"], t["bwd"])),
+               "first_call": first[b.name], "all_s": t}
+        if ref_name is not None and b.name != ref_name:
+            ref_out, ref_g, rows = refs[b.dtype]
+            out, grads = outs[b.name]
+            err = np.max(np.abs(np.asarray(out.image, np.float64) - ref_out.image), axis=-1)
+            if b.dtype == "float32" and ties is not None:
+                mask = ties["forward"]
+                row["tie_pixels"] = int(mask.sum())
+                row["image_max_abs"] = float(np.max(np.where(mask, 0.0, err), initial=0.0))
+                row["image_max_abs_at_ties"] = float(np.max(np.where(mask, err, 0.0), initial=0.0))
+                grads = b.backward(out, np.where(ties["backward"][..., None], 0.0, v).astype(b.dtype))
+            else:
+                row["tie_pixels"] = 0
+                row["image_max_abs"] = float(err.max())
+            row.update(_grad_errors(grads, ref_g, rows))
+        res["backends"][b.name] = row
+    if "ref64" in res["backends"]:
+        base = res["backends"]["ref64"]["forward_backward_s"]
+        for row in res["backends"].values():
+            row["speedup_vs_ref64"] = base / row["forward_backward_s"]
+    res["peak_rss_gb"] = _peak_rss_gb()
+    return res
+
+
+def machine_info() -> dict:
+    info = {"machine": platform.processor() or platform.machine(), "cpus": os.cpu_count(),
+            "python": platform.python_version(), "numpy": np.__version__,
+            "loadavg_before": list(os.getloadavg())}
+    try:
+        import numba
+        info["numba"], info["numba_threads"] = numba.__version__, numba.get_num_threads()
+    except ImportError:
+        info["numba"] = None
+    try:
+        import torch
+        info["torch"], info["torch_threads"] = torch.__version__, torch.get_num_threads()
+    except ImportError:
+        info["torch"] = None
+    from . import __version__
+    info["refgs"] = __version__
+    return info
+
+
+def _fmt(x, spec=".2e"):
+    return "-" if x is None else format(x, spec)
+
+
+def table(results: list[dict]) -> str:
+    """The results as one Markdown table (printed and written to docs)."""
+    lines = ["| scene | backend | fwd s | bwd s | fwd+bwd s | x ref64 | image err | ties | grad rel L2 "
+             "| grad worst el. | vs |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in results:
+        for name, b in r["backends"].items():
+            lines.append(f"| {r['scene']} | {name} | {b['forward_s']:.3f} | {b['backward_s']:.3f} "
+                         f"| {b['forward_backward_s']:.3f} | {_fmt(b.get('speedup_vs_ref64'), '.1f')} "
+                         f"| {_fmt(b.get('image_max_abs'))} | {b.get('tie_pixels', '-')} "
+                         f"| {_fmt(b.get('grad_rel_l2'))} | {_fmt(b.get('grad_worst_element'))} "
+                         f"| {r['error_reference'] if name != r['error_reference'] else '(reference)'} |")
+    return "\n".join(lines) + "\n"
+
+
+def growth_exponents(results: list[dict]) -> dict:
+    """Per backend, the slope of log(fwd+bwd time) against log(pixel-Gaussian pairs) (synthetic
+    scenes with at least a second of 3 sizes; None with fewer than 3 points)."""
+    pts: dict[str, list] = {}
+    for r in results:
+        if not r["scene"].startswith("synthetic") or "pixel_gaussian_pairs" not in r:
+            continue
+        for name, b in r["backends"].items():
+            pts.setdefault(name, []).append((r["pixel_gaussian_pairs"], b["forward_backward_s"]))
+    out = {}
+    for name, p in pts.items():
+        p = np.asarray(sorted(p), np.float64)
+        out[name] = float(np.polyfit(np.log(p[:, 0]), np.log(p[:, 1]), 1)[0]) if len(p) >= 3 else None
+    return out
+
+
+def targets(results: list[dict]) -> dict | None:
+    """Issue 7's targets on the 50k / 504x378 scene, if it ran with ref64 and fast32."""
+    for r in results:
+        if (r["n"], r["size"]) == TARGET_SCENE and r["scene"].startswith("synthetic"):
+            b = r["backends"]
+            if "ref64" not in b or "fast32" not in b:
+                return None
+            f = b["fast32"]
+            w, h = _parse_size(r["size"])
+            return {"speedup_fast32_vs_ref64": f["speedup_vs_ref64"],
+                    "speedup_ok": f["speedup_vs_ref64"] >= TARGET_SPEEDUP,
+                    "image_max_abs_outside_ties": f["image_max_abs"],
+                    "image_ok": f["image_max_abs"] <= TARGET_IMAGE_ERR,
+                    "tie_fraction": f["tie_pixels"] / (w * h),
+                    "ties_ok": f["tie_pixels"] / (w * h) <= TARGET_TIE_FRACTION,
+                    "grad_rel_l2": f["grad_rel_l2"], "grad_ok": f["grad_rel_l2"] <= TARGET_GRAD_REL_L2}
+    return None
+
+
+def plots(results: list[dict], exps: dict, out_dir: Path) -> list[Path]:
+    """pareto.png (time against error, Pareto front per scene) and scaling.png (time against
+    pairs with the fitted exponents)."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    names = sorted({n for r in results for n in r["backends"]})
+    colors = {n: plt.cm.tab10(i % 10) for i, n in enumerate(names)}
+    written = []
+    fig, axes = plt.subplots(1, 2, figsize=(12, 5))
+    for ax, key, title in ((axes[0], "image_max_abs", "image max |error| (outside ties)"),
+                           (axes[1], "grad_rel_l2", "gradient relative L2 (worst field)")):
+        for r in results:
+            pts = [(b["forward_backward_s"], max(b[key], 1e-17), n) for n, b in r["backends"].items()
+                   if key in b]
+            for t, e, n in pts:
+                ax.scatter(t, e, color=colors[n], s=25)
+            front = sorted(pts)
+            best, line = np.inf, []
+            for t, e, _ in front:
+                if e < best:
+                    best = e
+                    line.append((t, e))
+            if len(line) > 1:
+                ax.plot(*zip(*line), color="0.6", lw=0.8, zorder=0)
+        ax.set_xscale("log"), ax.set_yscale("log")
+        ax.set_xlabel("forward + backward seconds (median)"), ax.set_ylabel(title)
+        ax.grid(True, which="both", alpha=0.3)
+    for n in names:
+        axes[0].scatter([], [], color=colors[n], label=n)
+    axes[0].legend(fontsize=8)
+    fig.suptitle("speed against error: each point a backend on a scene, grey the Pareto front per scene "
+                 "(the reference itself has error 0 and is not drawn)", fontsize=10)
+    fig.tight_layout()
+    p = out_dir / "pareto.png"
+    fig.savefig(p, dpi=110)
+    plt.close(fig)
+    written.append(p)
+    fig, ax = plt.subplots(figsize=(7, 5))
+    for n in names:
+        pts = sorted((r["pixel_gaussian_pairs"], r["backends"][n]["forward_backward_s"]) for r in results
+                     if n in r["backends"] and "pixel_gaussian_pairs" in r and r["scene"].startswith("synthetic"))
+        if pts:
+            e = exps.get(n)
+            ax.plot(*zip(*pts), "o-", color=colors[n],
+                    label=f"{n} (exponent {e:.2f})" if e is not None else n)
+    ax.set_xscale("log"), ax.set_yscale("log")
+    ax.set_xlabel("pixel-Gaussian pairs in covered tiles"), ax.set_ylabel("forward + backward seconds")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    p = out_dir / "scaling.png"
+    fig.savefig(p, dpi=110)
+    plt.close(fig)
+    written.append(p)
+    return written
+
+
+def _csv(results: list[dict]) -> str:
+    buf = io.StringIO()
+    cols = ["scene", "n", "size", "backend", "dtype", "forward_s", "backward_s", "forward_backward_s",
+            "speedup_vs_ref64", "image_max_abs", "tie_pixels", "grad_rel_l2", "grad_worst_element",
+            "error_reference", "first_forward_s", "first_backward_s", "pixel_gaussian_pairs"]
+    wr = csv.writer(buf)
+    wr.writerow(cols)
+    for r in results:
+        for name, b in r["backends"].items():
+            wr.writerow([r["scene"], r["n"], r["size"], name, b["dtype"], b["forward_s"], b["backward_s"],
+                         b["forward_backward_s"], b.get("speedup_vs_ref64"), b.get("image_max_abs"),
+                         b.get("tie_pixels"), b.get("grad_rel_l2"), b.get("grad_worst_element"),
+                         r["error_reference"], b["first_call"]["forward_s"],
+                         b["first_call"]["backward_s"], r.get("pixel_gaussian_pairs")])
+    return buf.getvalue()
+
+
+def add_parser(sub) -> None:
+    b = sub.add_parser("bench", help="speed against error of every available backend")
+    b.add_argument("--n", type=int, nargs="+", default=list(DEFAULT_NS))
+    b.add_argument("--size", nargs="+", default=list(DEFAULT_SIZES))
+    b.add_argument("--backends", nargs="+", default=list(ALL_BACKENDS))
+    b.add_argument("--fern-run", help="a saved run directory: also bench its model.ply on its first test view")
+    b.add_argument("--repeats", type=int, default=3)
+    b.add_argument("--profile", default="inria", choices=("inria", "gsplat"))
+    b.add_argument("--out", default="bench-out", help="folder for bench.json/.csv and the plots")
+    b.add_argument("--no-plots", action="store_true")
+
+
+def run(args, progress: bool = True) -> dict:
+    """The ``refgs bench`` command; returns the JSON document it writes."""
+    if args.repeats < 1:
+        raise ConfigError(f"--repeats: expected at least 1, got {args.repeats}")
+    if any(n < 1 for n in args.n):
+        raise ConfigError(f"--n: expected positive numbers of Gaussians, got {args.n}")
+    for s in args.size:
+        _parse_size(s)
+    backends, unavailable = [], {}
+    for name in args.backends:
+        try:
+            backends.append(_make_backend(name, args.profile))
+        except Unavailable as e:
+            unavailable[name] = " ".join(str(e).split())
+    if not backends:
+        raise ConfigError("--backends: none of the chosen backends can run here: " + json.dumps(unavailable))
+    out_dir = Path(args.out)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    info = machine_info()
+    say = print if progress else (lambda *a, **k: None)
+    say("# " + ", ".join(f"{k} {v}" for k, v in info.items()), flush=True)
+    for name, why in unavailable.items():
+        say(f"# {name}: n/a ({why})")
+    scenes = list(synthetic_scenes(args.n, args.size))
+    if args.fern_run:
+        scenes.append(fern_scene(args.fern_run))
+    results = []
+    for label, n, size, g, cam in scenes:
+        t0 = time.perf_counter()
+        r = bench_scene(label, n, size, g, cam, backends, args.repeats, args.profile)
+        results.append(r)
+        say(f"{label}: {time.perf_counter() - t0:.1f} s"
+            + (f" (not run: {', '.join(r['skipped'])}, above LIMITS)" if r["skipped"] else ""), flush=True)
+    info["loadavg_after"] = list(os.getloadavg())
+    exps = growth_exponents(results)
+    doc = {"info": info, "unavailable": unavailable, "limits": LIMITS, "results": results,
+           "growth_exponents": exps, "targets": targets(results)}
+    atomic_write_json(out_dir / "bench.json", doc)
+    atomic_write_text(out_dir / "bench.csv", _csv(results))
+    if not args.no_plots:
+        plots(results, exps, out_dir)
+    say(table(results))
+    say("growth exponent of fwd+bwd time in pixel-Gaussian pairs: "
+        + ", ".join(f"{k} {_fmt(v, '.2f')}" for k, v in exps.items()))
+    if doc["targets"] is not None:
+        say("targets (50k, 504x378): " + json.dumps(doc["targets"]))
+    say(f"peak memory (process max RSS): {_peak_rss_gb():.2f} GB; written to {out_dir}")
+    return doc
+
+
+__all__ = ["run", "bench_scene", "table", "growth_exponents", "targets", "LIMITS", "ALL_BACKENDS"]

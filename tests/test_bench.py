@@ -1,0 +1,62 @@
+"""``refgs bench`` (issue 7; docs/performance.md): it times every chosen backend on the same
+inputs, measures error against the float64 reference, and writes JSON, CSV and both plots."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from refgs.cli import main
+
+
+def test_bench_small_scenes(tmp_path, capsys):
+    pytest.importorskip("numba")
+    out = tmp_path / "b"
+    assert main(["bench", "--n", "300", "1200", "2400", "--size", "48x32", "--repeats", "1",
+                 "--backends", "ref64", "fast64", "fast32", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "| synthetic N=300 48x32 | fast32 |" in text and "growth exponent" in text
+    doc = json.loads((out / "bench.json").read_text())
+    assert [r["n"] for r in doc["results"]] == [300, 1200, 2400]
+    for r in doc["results"]:
+        b = r["backends"]
+        assert set(b) == {"ref64", "fast64", "fast32"} and r["error_reference"] == "ref64"
+        assert b["fast64"]["image_max_abs"] < 1e-12 and b["fast64"]["grad_rel_l2"] < 1e-10
+        assert b["fast32"]["image_max_abs"] < 1e-5 and b["fast32"]["grad_rel_l2"] < 1e-4
+        assert b["fast32"]["tie_pixels"] >= 0 and b["fast64"]["tie_pixels"] == 0
+        assert b["ref64"]["speedup_vs_ref64"] == 1.0 and "image_max_abs" not in b["ref64"]
+        assert r["pixel_gaussian_pairs"] > 0
+    assert set(doc["growth_exponents"]) == {"ref64", "fast64", "fast32"}
+    assert all(np.isfinite(v) for v in doc["growth_exponents"].values())
+    assert (out / "bench.csv").read_text().count("\n") == 1 + 9
+    assert (out / "pareto.png").stat().st_size > 0 and (out / "scaling.png").stat().st_size > 0
+
+
+def test_bench_limits_and_fast64_as_proxy_reference(tmp_path):
+    """Above LIMITS the reference is not run; errors are then taken against fast float64."""
+    pytest.importorskip("numba")
+    from types import SimpleNamespace
+
+    from refgs import bench
+
+    old = dict(bench.LIMITS)
+    bench.LIMITS.update(ref64=(100, 10 ** 9))
+    try:
+        args = SimpleNamespace(n=[50, 200], size=["32x24"], backends=["ref64", "fast64", "fast32"],
+                               fern_run=None, repeats=1, profile="gsplat", out=str(tmp_path),
+                               no_plots=True)
+        doc = bench.run(args, progress=False)
+    finally:
+        bench.LIMITS.clear(), bench.LIMITS.update(old)
+    small, big = doc["results"]
+    assert small["error_reference"] == "ref64" and "ref64" in small["backends"]
+    assert big["error_reference"] == "fast64" and big["skipped"] == ["ref64"]
+    assert "speedup_vs_ref64" not in big["backends"]["fast32"]
+
+
+def test_bench_bad_input_is_one_line(tmp_path, capsys):
+    assert main(["bench", "--size", "12xq", "--out", str(tmp_path)]) == 2
+    assert main(["bench", "--backends", "nope", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and err[0].startswith("refgs: error: --size") and "--backends" in err[1]
