@@ -141,17 +141,18 @@ def synthetic_scenes(ns, sizes):
 
 
 def fern_scene(run_dir: str | Path):
-    """The first test view of a saved run (its camera) and the run's model.ply."""
-    from .cli import MODEL_FILE, _restore
-    from .io.ply import read_gaussians_ply
+    """A saved run's Gaussians (its checkpoint's exact parameters, as ``refgs eval`` uses them;
+    the run may be unfinished) seen from its first test view."""
+    from .cli import _restore
+    from .types import Gaussians
     run_dir = Path(run_dir).absolute()
     _, cfg, trainer = _restore(run_dir)
-    g = read_gaussians_ply(run_dir / MODEL_FILE, np.float64)
+    g = Gaussians(**{k: np.asarray(v, np.float64) for k, v in trainer.params.items()})
     view = trainer.test_views[0]
     cam = view.camera
     size = f"{cam.width}x{cam.height}"
-    return (f"{Path(cfg.scene).name} {cfg.views}-view run ({view.name})", len(g), size,
-            g.astype(np.float32).astype(np.float64), cam)
+    return (f"{Path(cfg.scene).name} {cfg.views}-view {cfg.method} run at iteration {trainer.t} "
+            f"({view.name})", len(g), size, g.astype(np.float32).astype(np.float64), cam)
 
 
 def _within(name: str, n: int, size: str) -> bool:

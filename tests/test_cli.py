@@ -300,5 +300,5 @@ def test_bench_on_a_saved_run(tiny_run, tmp_path, capsys):
     assert rc == 0, out
     doc = json.loads((tmp_path / "bench.json").read_text())
     run = doc["results"][-1]
-    assert "run (v00.png)" in run["scene"] and run["error_reference"] == "ref64"
+    assert "run at iteration 20 (v00.png)" in run["scene"] and run["error_reference"] == "ref64"
     assert run["backends"]["fast32"]["image_max_abs"] < 1e-5
