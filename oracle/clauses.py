@@ -56,6 +56,7 @@ def default_spec_dir() -> Path:
 def load_clauses(spec_dir: str | os.PathLike | None = None) -> dict[str, Clause]:
     """Every clause declared in ``spec_dir/*.md``, keyed by id, in file then line order.
 
+    Headings inside fenced code blocks (examples of the format) declare nothing.
     Raises ValueError naming both places if an id is declared twice (ids are unique across the
     spec, docs/spec/README.md).  A missing folder gives an empty dict: the meta-test then reports
     every check's citation as unknown, which is the right failure.
@@ -65,8 +66,12 @@ def load_clauses(spec_dir: str | os.PathLike | None = None) -> dict[str, Clause]
     if not folder.is_dir():
         return found
     for path in sorted(folder.glob("*.md")):
+        fenced = False
         for lineno, text in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
-            m = CLAUSE_HEADING.match(text)
+            if text.lstrip().startswith("```"):
+                fenced = not fenced          # a heading inside a code block is an example
+                continue
+            m = None if fenced else CLAUSE_HEADING.match(text)
             if not m:
                 continue
             cid, title = m.group(1), m.group(2)

@@ -107,8 +107,18 @@ def load_scene(path) -> tuple[Scene, dict]:
 
 
 def machine() -> dict:
+    """The machine and the versions of the numerical libraries a backend may use (None: absent;
+    looked up without importing them)."""
+    from importlib import metadata
+    versions = {}
+    for dist in ("scipy", "numba", "torch", "gsplat"):
+        try:
+            versions[dist] = metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            versions[dist] = None
     return {"platform": platform.platform(), "python": sys.version.split()[0],
-            "cpu_count": os.cpu_count(), "numpy": np.__version__, "machine": platform.machine()}
+            "cpu_count": os.cpu_count(), "numpy": np.__version__, "machine": platform.machine(),
+            **versions}
 
 
 def clause_table(results, clauses: dict) -> dict:

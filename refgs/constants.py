@@ -26,6 +26,13 @@ ALPHA_MIN = 1.0 / 255.0
 #: (forward.cu:344 ``test_T < 0.0001f``; gsplat RasterizeToPixels3DGSFwd.cu:154 ``next_T <= 1e-4f``).  [RAS-05]
 T_MIN = 1e-4
 
+#: Quaternion norms below this are "near-degenerate": an epsilon-guarded normalisation
+#: q / max(|q|, eps) -- torch ``F.normalize`` (eps 1e-12) as gsplat's ``_quat_to_rotmat`` uses it
+#: (gsplat-1.5.3 cuda/_torch_impl.py) -- no longer returns the direction of q there.  refgs needs no
+#: guard (it divides by max|q_k| first, CNV-05); this names the band the tests and the oracle's
+#: ``near_degenerate_quaternions`` strategy must reach.  [CNV-05, HARD-06]
+QUAT_TINY_NORM = 1e-12
+
 #: Real spherical-harmonics constants (auxiliary.h:21-39; utils/sh_utils.py).  [SH-02]
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199

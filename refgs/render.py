@@ -57,7 +57,7 @@ def validate_gaussians(g: Gaussians) -> None:
         arr = getattr(g, name)
         if not np.all(np.isfinite(arr)):
             bad = np.argwhere(~np.isfinite(arr))[0]
-            _fail(f"Gaussians.{name}", "finite values", f"{arr[tuple(bad)]} at index {tuple(bad)}")
+            _fail(f"Gaussians.{name}", "finite values", f"{arr[tuple(bad)]} at index {tuple(int(i) for i in bad)}")
     if n > 0:
         lim = LOG_SCALE_MAX_FRACTION * np.log(np.finfo(g.log_scales.dtype).max)
         if np.any(g.log_scales > lim):

@@ -143,13 +143,23 @@ def test_cnv04_quaternion_order():
     assert cov[45][1] > 0.4 * cov[45][0]
 
 
-@pytest.mark.parametrize("dtype,norm", [
+_CNV05_NORMS = [
     ("float64", 1.0), ("float64", 3.7), ("float64", 1e-30), ("float64", 1e-120),
     ("float64", 1e-200), ("float64", 1e-300), ("float64", 1e-310), ("float64", 1e150),
     ("float64", 1e200), ("float64", 1e300),
     ("float32", 1.0), ("float32", 1e-15), ("float32", 1e-30), ("float32", 1e-40),
     ("float32", 1e15), ("float32", 1e30),
-])
+]
+
+
+def test_cnv05_norms_reach_the_near_degenerate_band():
+    """CNV-05: both dtypes are tested below QUAT_TINY_NORM (where an eps-guarded normalise fails)."""
+    from refgs.constants import QUAT_TINY_NORM
+    for dt in ("float32", "float64"):
+        assert min(n for d, n in _CNV05_NORMS if d == dt) < QUAT_TINY_NORM * 1e-3
+
+
+@pytest.mark.parametrize("dtype,norm", _CNV05_NORMS)
 def test_cnv05_quaternion_normalisation(dtype, norm):
     """CNV-05: only the direction of q matters (any finite non-zero norm, either dtype, subnormal
     included); the gradient (I - u u^T) v_u / |q| is orthogonal to q, scales like 1/|q| and is

@@ -181,7 +181,8 @@ class Method:
         pass
 
 
-#: --method name -> factory of a Method; only "3dgs" for now (register_method adds others).
+#: --method name -> factory of a Method; "3dgs" here, "fm" and "dropgaussian" registered by
+#: refgs.methods.training (register_method adds others).
 METHODS = {"3dgs": Method}
 
 
