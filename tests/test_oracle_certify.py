@@ -24,14 +24,12 @@ EXAMPLES = "4"
 
 #: (adapter, optional module it needs, whether it provides every optional interface: the numba
 #: backend offers render and render_backward but no per-stage functions -> "not provided")
-PASSING = [
-    ("oracle.adapters.refgs_backend:refgs_float64", None, True),
-    ("oracle.adapters.refgs_backend:refgs_gsplat_float32", None, True),
-    ("oracle.adapters.torch_backend:torch_float32", "torch", True),
-    ("oracle.adapters.torch_backend:torch_gsplat_float64", "torch", True),
-    ("refgs.fast:fast_float32", "numba", False),
-    ("refgs.fast:fast_gsplat_float64", "numba", False),
-]
+PASSING = [(f"{module}:{prefix}{profile}{dtype}", needs, full)
+           for module, prefix, needs, full in (
+               ("oracle.adapters.refgs_backend", "refgs_", None, True),
+               ("oracle.adapters.torch_backend", "torch_", "torch", True),
+               ("refgs.fast", "fast_", "numba", False))
+           for profile in ("", "gsplat_") for dtype in ("float32", "float64")]
 
 #: gsplat 1.5.3 pure-torch vs refgs: the documented differences (docs/agreement.md)
 GSPLAT_KNOWN_FAILURES = {"stage_covariance", "stage_projection"}
