@@ -202,3 +202,27 @@ def test_fm_training_is_deterministic():
         b.step()
     for k in a.params:
         assert np.array_equal(a.params[k], b.params[k]), k
+
+
+def test_fm07_densified_gaussians_are_reinitialised():
+    """FM-06/FM-07: at an iteration where densification and reinit coincide (t = 10 here), the
+    order is densify -> reinit -> opacity reset: every current Gaussian, the children made a moment
+    before included, gets the SfM-style state computed from the current positions."""
+    from refgs.data.init import knn_log_scales
+    method = FlatMinimaMethod(SMALL)
+    dcfg = DensifyConfig(start=5, interval=5, until=40, grad_threshold=1e-9, opacity_reset_interval=10_000)
+    tr = make_trainer(method, iters=40, densify=dcfg)
+    for _ in range(9):
+        tr.step()
+    n_before = tr.n
+    tr.step()                                   # t = 10: densify, then reinit
+    assert tr.t == 10 and tr.n > n_before       # children were made at this very iteration
+    p = tr.params
+    expected = knn_log_scales(p["means"])
+    expected = expected if expected.ndim == 2 else np.repeat(expected[:, None], 3, 1)
+    assert np.allclose(p["log_scales"], expected)
+    assert np.all(p["quats"] == [1, 0, 0, 0]) and np.all(p["sh"][:, 1:] == 0)
+    assert np.all(refgs.render.__globals__["expit"](p["opacity_logits"]) <= 0.01 + 1e-12)
+    assert method.frozen_until.shape == (tr.n,) and np.all(method.frozen_until == 10 + SMALL.reinit_window)
+    for name in ("log_scales", "quats"):
+        assert not tr.adam.m[name].any() and not tr.adam.v[name].any()
