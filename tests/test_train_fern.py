@@ -1,7 +1,8 @@
-"""A short fern 3-view run with the reference backend (slow; docs/spec/training.md TRN-01..TRN-10).
+"""A short fern 3-view run (docs/spec/training.md TRN-01..TRN-10, TRN-12).
 
-Run with ``pytest -m slow tests/test_train_fern.py``.  Takes tens of minutes on 2 cores (about
-4 s per iteration on 504 x 378 images, see the measurements in docs/spec/training.md).
+With ``--backend fast`` (numba) it is part of the default suite (about 1.5 minutes on 2 cores);
+with the numpy reference it is behind the ``slow`` marker (``pytest -m slow
+tests/test_train_fern.py``: about 20 minutes, 4 s per iteration on 504 x 378 images, TRN-12).
 """
 from __future__ import annotations
 
@@ -16,11 +17,18 @@ DATA = Path(os.environ.get("REFGS_DATA", Path(__file__).resolve().parents[1] / "
 FERN = DATA / "fern"
 ITERS = 300
 
-pytestmark = [pytest.mark.slow,
-              pytest.mark.skipif(not FERN.is_dir(), reason="needs shared/data/fern")]
+pytestmark = [pytest.mark.skipif(not FERN.is_dir(), reason="needs shared/data/fern")]
 
 
-def test_fern_three_views(tmp_path):
+def _has_numba() -> bool:
+    import importlib.util
+    return importlib.util.find_spec("numba") is not None
+
+
+@pytest.mark.parametrize("backend", [
+    pytest.param("fast", marks=pytest.mark.skipif(not _has_numba(), reason="needs numba")),
+    pytest.param("reference", marks=pytest.mark.slow)])
+def test_fern_three_views(tmp_path, backend):
     from refgs.cli import build_parser, config_from_args, train
     from refgs.data.init import init_gaussians_from_points
     from refgs.data.pointcloud import read_ply
@@ -33,7 +41,8 @@ def test_fern_three_views(tmp_path):
     # densification brought forward (from 100 every 100: at 200) so that this short run densifies
     args = build_parser().parse_args([
         "train", "--scene", str(FERN), "--views", "3", "--iters", str(ITERS), "--seed", "0",
-        "--out", str(out), "--densify-from", "100", "--eval-every", "100", "--quiet"])
+        "--out", str(out), "--densify-from", "100", "--eval-every", "100", "--quiet",
+        "--backend", backend])
     cfg = config_from_args(args)
     run = train(cfg, out, progress=False)
 
@@ -62,6 +71,7 @@ def test_fern_three_views(tmp_path):
         "IMG_4026.png", "IMG_4034.png", "IMG_4042.png"]
 
 
+@pytest.mark.slow
 def test_demo_command(tmp_path, capsys):
     """`refgs demo` end to end with a few iterations (builds the demo scene on first use)."""
     from refgs.cli import main
