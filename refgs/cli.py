@@ -226,6 +226,7 @@ def train(cfg: TrainConfig, out: str | Path, progress: bool = True, callback=Non
         write_ply(run / INIT_FILE, points, colors)
         g = init_gaussians_from_points(points, colors, cfg.sh_degree, DTYPES[cfg.dtype])
         trainer = _make_trainer(cfg, train_views, test_views, g.to_dict())
+        trainer.init_cloud = {"points": np.asarray(points), "colors": np.asarray(colors)}
         write_config(run, {
             "refgs_version": _version(), "command": command, "settings": cfg.to_dict(),
             "settings_hash": settings_hash(cfg.to_dict()),
@@ -266,8 +267,12 @@ def _restore(run_dir: Path):
 def resume(run_dir: str | Path, progress: bool = True, callback=None) -> Path:
     """Continue an interrupted run to its --iters (TRN-09); a finished run is only completed
     (outputs written if missing)."""
+    from .data.pointcloud import write_ply
+
     run = RunDir.existing(run_dir)
     config, cfg, trainer = _restore(run.path)
+    if trainer.init_cloud is not None and not (run.path / INIT_FILE).is_file():
+        write_ply(run.path / INIT_FILE, trainer.init_cloud["points"], trainer.init_cloud["colors"])
     if trainer.t < cfg.iters:
         before = config.get("provenance", {}).get("source_hash")
         if before and before != source_hash():

@@ -225,3 +225,26 @@ def test_real_signal_then_resume(scene, signal_reference, tmp_path, sig):
     for k in a:
         if k.split("/")[0] in ("param", "adam", "densify"):
             assert np.array_equal(a[k], b[k]), (k, meta["iteration"])
+
+
+def test_checkpoint_holds_the_initial_cloud(scene, tmp_path):
+    """TRN-09: the checkpoint keeps the initial point cloud; resume restores init_points.ply."""
+    from refgs.data.pointcloud import read_ply
+
+    out = tmp_path / "run"
+
+    def kill(trainer, stop):
+        if trainer.t == 7:
+            raise SimulatedKill
+
+    with pytest.raises(SimulatedKill):
+        train(config(scene, out), out, progress=False, callback=kill)
+    arrays, _ = load_checkpoint(out / "checkpoint.npz")
+    pts, cols = read_ply(out / "init_points.ply")
+    assert arrays["init/points"].shape == pts.shape and len(pts) > 0
+    np.testing.assert_allclose(arrays["init/points"], pts, rtol=1e-6)
+    np.testing.assert_allclose(arrays["init/colors"], cols, atol=1 / 255)
+    (out / "init_points.ply").unlink()
+    resume(out, progress=False)
+    pts2, _ = read_ply(out / "init_points.ply")
+    np.testing.assert_allclose(pts2, pts, rtol=1e-6)

@@ -231,6 +231,9 @@ class Trainer:
                                         "iter_cpu_seconds")}
         self.train_seconds = 0.0
         self.loss_ema = 0.0
+        #: the initial point cloud {"points": (M,3), "colors": (M,3)} the run started from, kept in
+        #: every checkpoint (TRN-09); set by the caller that made it (refgs.cli.train)
+        self.init_cloud: dict | None = None
         self.method.setup(self)
 
     # --- parameters -----------------------------------------------------------------------
@@ -324,6 +327,8 @@ class Trainer:
         out.update(self.stats.state_arrays())
         out.update({f"history/{k}": np.asarray(v, dtype=np.float64) for k, v in self.history.items()})
         out.update({f"method/{k}": v for k, v in self.method.state_arrays().items()})
+        if self.init_cloud is not None:
+            out.update({f"init/{k}": np.asarray(v) for k, v in self.init_cloud.items()})
         return out
 
     def state_meta(self) -> dict:
@@ -343,6 +348,8 @@ class Trainer:
             vals = np.asarray(arrays.get(f"history/{k}", []), np.float64).tolist()
             self.history[k] = [int(v) for v in vals] if k.endswith("_t") or k == "n_gaussians" else vals
         self.method.load_state_arrays({k[7:]: v for k, v in arrays.items() if k.startswith("method/")})
+        init = {k[5:]: np.asarray(v) for k, v in arrays.items() if k.startswith("init/")}
+        self.init_cloud = init or None
         self.t = int(meta["iteration"])
         self.rngs = {k: rng_from_state(meta["rng"][k]) for k in RNG_STREAMS}
         self.view_stack = [int(i) for i in meta["view_stack"]]
