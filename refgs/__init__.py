@@ -18,6 +18,7 @@ from .projection import project_gaussians, project_gaussians_backward, world_to_
 from .sh import eval_sh_colors, eval_sh_colors_backward, sh_basis, num_sh_coeffs  # noqa: E402
 from .rasterize import build_tile_lists, composite, composite_backward  # noqa: E402
 from .render import render, render_backward, validate_inputs, validate_gaussians  # noqa: E402
+from .activations import raw_gradients, to_activated  # noqa: E402
 from .methods.flat_minima import sap_offsets  # noqa: E402
 
 __all__ = [
@@ -28,4 +29,5 @@ __all__ = [
     "eval_sh_colors", "eval_sh_colors_backward", "sh_basis", "num_sh_coeffs",
     "build_tile_lists", "composite", "composite_backward",
     "render", "render_backward", "validate_inputs", "validate_gaussians", "sap_offsets",
+    "to_activated", "raw_gradients",
 ]

@@ -69,3 +69,22 @@ def test_oracle_check_without_optional_packages():
         sys.exit(code or 0)
     """)
     assert r.returncode == 0, r.stdout + r.stderr
+
+
+def test_train_and_eval_run_without_optional_packages(tmp_path):
+    """A real (tiny) ``refgs train`` and ``refgs eval`` with numba/torch/gsplat/jupyter blocked."""
+    from test_cli import tiny_args, write_tiny_scene
+
+    scene = write_tiny_scene(tmp_path / "scene")
+    out = tmp_path / "run"
+    args = [str(a) for a in tiny_args(scene, out, 6)]
+    r = run_blocked(f"""
+        import sys, json
+        from refgs.cli import main
+        assert main({args!r}) == 0
+        assert main(['eval', {str(out)!r}, '--no-lpips', '--quiet']) == 0
+        assert not any(m.split('.')[0] in ('numba', 'torch', 'gsplat') for m in sys.modules)
+        print('psnr', json.load(open({str(out / 'metrics.json')!r}))['psnr'])
+    """)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "psnr" in r.stdout

@@ -28,7 +28,7 @@ from __future__ import annotations
 import numpy as np
 
 import refgs
-from oracle.protocol import raw_gradients, to_activated
+from refgs.activations import raw_gradients, to_activated
 
 
 class TemplateBackend:
