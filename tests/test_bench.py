@@ -17,6 +17,7 @@ def test_bench_small_scenes(tmp_path, capsys):
                  "--backends", "ref64", "fast64", "fast32", "--out", str(out)]) == 0
     text = capsys.readouterr().out
     assert "| synthetic N=300 48x32 | fast32 |" in text and "growth exponent" in text
+    assert "| first call s |" in text
     doc = json.loads((out / "bench.json").read_text())
     assert [r["n"] for r in doc["results"]] == [300, 1200, 2400]
     for r in doc["results"]:

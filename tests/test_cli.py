@@ -294,11 +294,11 @@ def test_init_points_from_ply(tiny_scene, tmp_path, capsys):
 def test_bench_on_a_saved_run(tiny_run, tmp_path, capsys):
     """``refgs bench --fern-run RUN``: the run's model.ply on its first test view (issue 7)."""
     pytest.importorskip("numba")
-    rc, out, _ = run_cli(["bench", "--n", "10", "--size", "16x16", "--repeats", "1", "--backends",
+    rc, out, _ = run_cli(["bench", "--n", "--repeats", "1", "--backends",
                           "ref64", "fast32", "--fern-run", tiny_run, "--out", tmp_path, "--no-plots"],
                          capsys)
     assert rc == 0, out
     doc = json.loads((tmp_path / "bench.json").read_text())
-    run = doc["results"][-1]
+    (run,) = doc["results"]                      # --n with no value: the run only
     assert "run at iteration 20 (v00.png)" in run["scene"] and run["error_reference"] == "ref64"
     assert run["backends"]["fast32"]["image_max_abs"] < 1e-5
