@@ -6,6 +6,9 @@ A backend has ``name`` and two methods with the signatures of ``refgs.render`` a
     render(gaussians, camera, config) -> RenderOutput-like (image, radii, means2d, ...)
     render_backward(out, v_image, v_alpha=None, v_depth=None) -> Gradients
 
+and optionally ``ssim_and_grad(img, gt)`` (the signature of ``refgs.metrics.ssim.ssim_and_grad``)
+used by the loss in place of the reference's.
+
 "reference" is the numpy specification itself; "fast" is refgs.fast (numba).  Another backend
 registers itself with ``register_backend`` and is picked with ``--backend NAME`` without touching
 training code (docs/spec/training.md TRN-08).
@@ -48,6 +51,12 @@ class FastBackend:
 
     def render_backward(self, out, v_image, v_alpha=None, v_depth=None):
         return self._fast.render_backward(out, v_image, v_alpha, v_depth)
+
+    def ssim_and_grad(self, img, gt):
+        """The loss's SSIM and its gradient, compiled (refgs.fast.ssim; equal to the reference's
+        refgs.metrics.ssim.ssim_and_grad to ~1e-15 relative)."""
+        from ..fast.ssim import ssim_and_grad
+        return ssim_and_grad(img, gt)
 
 
 _REGISTRY: dict[str, Callable[[], object]] = {"reference": ReferenceBackend, "fast": FastBackend}

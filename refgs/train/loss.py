@@ -38,14 +38,16 @@ def l1_and_grad(render: np.ndarray, gt: np.ndarray) -> tuple[float, np.ndarray]:
 
 
 def photometric_loss(render: np.ndarray, gt: np.ndarray, lambda_dssim: float = LAMBDA_DSSIM,
-                     form: str = FORM_L1_PLUS) -> tuple[float, np.ndarray]:
+                     form: str = FORM_L1_PLUS, ssim_fn=None) -> tuple[float, np.ndarray]:
     """Training loss and d loss / d render (MET-08).
 
     render, gt: (H, W, C) or (H, W), same shape, finite (the render is already clamped to [0, 1]
     as DropGaussian's ``render()`` does, peers.md 3.1; the clamp's gradient belongs to the caller).
     lambda_dssim in [0, 1].  form: "l1_plus" (default) or "blend" (see module docstring).
     Returns ``(loss, grad)``: loss a Python float computed in float64; grad with render's shape
-    and render's floating dtype (float64 for integer input).
+    and render's floating dtype (float64 for integer input).  ``ssim_fn``: an implementation of
+    ``refgs.metrics.ssim.ssim_and_grad`` (the default) with its signature, e.g. a backend's
+    compiled one (``refgs.fast.ssim.ssim_and_grad``, TRN-08).
     """
     if form not in LOSS_FORMS:
         raise ValueError(f"photometric_loss: form must be one of {LOSS_FORMS}, got {form!r}")
@@ -56,7 +58,7 @@ def photometric_loss(render: np.ndarray, gt: np.ndarray, lambda_dssim: float = L
         raise ValueError(f"photometric_loss: render and gt must have the same shape, got "
                          f"{np.shape(render)} and {np.shape(gt)}")
     # ssim_and_grad validates the rest (2 or 3 dimensions, finite values).
-    s, g_s = ssim_and_grad(np.asarray(render, dtype=np.float64), gt)
+    s, g_s = (ssim_fn or ssim_and_grad)(np.asarray(render, dtype=np.float64), gt)
     l1, g_l1 = l1_and_grad(render, gt)
     w_l1 = 1.0 if form == FORM_L1_PLUS else 1.0 - lam
     loss = w_l1 * l1 + lam * (1.0 - s)

@@ -270,7 +270,8 @@ class Trainer:
         image = out.image
         shown = np.clip(image, 0.0, 1.0)
         loss, v_image = photometric_loss(shown if cfg.clamp_render else image, view.image,
-                                         cfg.lambda_dssim, cfg.loss_form)
+                                         cfg.lambda_dssim, cfg.loss_form,
+                                         getattr(self.backend, "ssim_and_grad", None))
         if not np.isfinite(loss):
             raise TrainingDiverged(f"training diverged at iteration {t}: loss is {loss}")
         if cfg.clamp_render:  # torch.clamp passes the gradient where min <= x <= max
