@@ -309,6 +309,19 @@ def growth_exponents(results: list[dict]) -> dict:
     return out
 
 
+def _plain(obj):
+    """``obj`` with numpy scalars and arrays turned into Python numbers and lists (for JSON)."""
+    if isinstance(obj, dict):
+        return {str(k): _plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_plain(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return obj
+
+
 def targets(results: list[dict]) -> dict | None:
     """Issue 7's targets on the 50k / 504x378 scene, if it ran with ref64 and fast32."""
     for r in results:
@@ -318,13 +331,14 @@ def targets(results: list[dict]) -> dict | None:
                 return None
             f = b["fast32"]
             w, h = _parse_size(r["size"])
-            return {"speedup_fast32_vs_ref64": f["speedup_vs_ref64"],
-                    "speedup_ok": f["speedup_vs_ref64"] >= TARGET_SPEEDUP,
-                    "image_max_abs_outside_ties": f["image_max_abs"],
-                    "image_ok": f["image_max_abs"] <= TARGET_IMAGE_ERR,
-                    "tie_fraction": f["tie_pixels"] / (w * h),
-                    "ties_ok": f["tie_pixels"] / (w * h) <= TARGET_TIE_FRACTION,
-                    "grad_rel_l2": f["grad_rel_l2"], "grad_ok": f["grad_rel_l2"] <= TARGET_GRAD_REL_L2}
+            return _plain({"speedup_fast32_vs_ref64": f["speedup_vs_ref64"],
+                           "speedup_ok": f["speedup_vs_ref64"] >= TARGET_SPEEDUP,
+                           "image_max_abs_outside_ties": f["image_max_abs"],
+                           "image_ok": f["image_max_abs"] <= TARGET_IMAGE_ERR,
+                           "tie_fraction": f["tie_pixels"] / (w * h),
+                           "ties_ok": f["tie_pixels"] / (w * h) <= TARGET_TIE_FRACTION,
+                           "grad_rel_l2": f["grad_rel_l2"],
+                           "grad_ok": f["grad_rel_l2"] <= TARGET_GRAD_REL_L2})
     return None
 
 
@@ -453,8 +467,8 @@ def run(args, progress: bool = True) -> dict:
             + (f" (not run: {', '.join(r['skipped'])}, above LIMITS)" if r["skipped"] else ""), flush=True)
     info["loadavg_after"] = list(os.getloadavg())
     exps = growth_exponents(results)
-    doc = {"info": info, "unavailable": unavailable, "limits": LIMITS, "results": results,
-           "growth_exponents": exps, "targets": targets(results)}
+    doc = _plain({"info": info, "unavailable": unavailable, "limits": LIMITS, "results": results,
+                  "growth_exponents": exps, "targets": targets(results)})
     atomic_write_json(out_dir / "bench.json", doc)
     atomic_write_text(out_dir / "bench.csv", _csv(results))
     if not args.no_plots:

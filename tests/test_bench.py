@@ -61,3 +61,20 @@ def test_bench_bad_input_is_one_line(tmp_path, capsys):
     assert main(["bench", "--backends", "nope", "--out", str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and err[0].startswith("refgs: error: --size") and "--backends" in err[1]
+
+
+def test_targets_are_judged_and_json_ready():
+    """The 50k / 504x378 targets of issue 7 from a result row (plain Python types for JSON)."""
+    import json as _json
+
+    from refgs import bench
+
+    row = {"scene": "synthetic N=50000 504x378", "n": 50000, "size": "504x378", "backends": {
+        "ref64": {"forward_backward_s": np.float64(6.0), "speedup_vs_ref64": np.float64(1.0)},
+        "fast32": {"forward_backward_s": np.float64(0.25), "speedup_vs_ref64": np.float64(24.0),
+                   "image_max_abs": np.float64(2e-6), "tie_pixels": 30, "grad_rel_l2": np.float64(5e-6)}}}
+    t = bench.targets([row])
+    assert t["speedup_ok"] is False and t["image_ok"] is True and t["grad_ok"] is True
+    assert t["ties_ok"] is False and abs(t["tie_fraction"] - 30 / (504 * 378)) < 1e-15
+    _json.dumps(t, allow_nan=False)
+    assert bench.targets([dict(row, n=10000)]) is None
