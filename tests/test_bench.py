@@ -31,6 +31,8 @@ def test_bench_small_scenes(tmp_path, capsys):
     assert set(doc["growth_exponents"]) == {"ref64", "fast64", "fast32"}
     assert all(np.isfinite(v) for v in doc["growth_exponents"].values())
     assert (out / "bench.csv").read_text().count("\n") == 1 + 9
+    assert all(r["backends"]["fast32"]["tie_pixels_differing"] <= r["backends"]["fast32"]["tie_pixels"]
+               for r in doc["results"])
     assert (out / "pareto.png").stat().st_size > 0 and (out / "scaling.png").stat().st_size > 0
 
 
