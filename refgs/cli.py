@@ -41,7 +41,7 @@ from .train.loss import LOSS_FORMS
 from .train.schedule import scene_extent
 from .train.trainer import BACKGROUNDS, DTYPES, METHODS, TrainConfig, Trainer, View
 from .methods import training as _methods  # noqa: F401  (registers fm, dropgaussian)
-from .methods.flat_minima import CLAMP_MODES
+from .methods.flat_minima import CLAMP_MODES, PERTURB_TARGETS
 
 #: Exit statuses: bad input, interrupted (128 + SIGINT), other failure.
 EXIT_BAD_INPUT = 2
@@ -474,7 +474,14 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--fm-no-schedule", action="store_false", dest="schedule", default=None,
                    help="alpha(t) = 1 instead of t/T")
     f.add_argument("--fm-clamp", choices=CLAMP_MODES, dest="clamp", help="clamp reading (default axis)")
-    f.add_argument("--fm-noise", choices=("anisotropic", "iso_max", "iso_mean", "iso_fixed"), dest="noise")
+    f.add_argument("--fm-noise", choices=("anisotropic", "iso_max", "iso_mean", "iso_fixed"), dest="noise",
+                   help="noise shape (ablation; iso_fixed: half the densification size threshold)")
+    f.add_argument("--fm-noise-sigma", type=float, dest="noise_fixed_sigma",
+                   help="with --fm-noise iso_fixed: this standard deviation instead")
+    f.add_argument("--fm-perturb", choices=PERTURB_TARGETS, dest="perturb",
+                   help="perturbed parameter (ablation; default position)")
+    f.add_argument("--fm-mixed-loss", action="store_true", dest="mixed_loss", default=None,
+                   help="ablation: average the gradients of a fully perturbed and a clean render")
     f.add_argument("--fm-no-reinit", action="store_false", dest="reinit", default=None, help="no periodic reinit")
     f.add_argument("--fm-reinit-interval", type=int, dest="reinit_interval")
     f.add_argument("--fm-reinit-window", type=int, dest="reinit_window")
@@ -511,7 +518,8 @@ def build_parser() -> argparse.ArgumentParser:
 _NEW_RUN_FLAGS = ("scene", "views", "iters", "out")
 _DENSIFY_FLAGS = ("start", "interval", "until", "grad_threshold", "opacity_reset_interval",
                   "screen_size_rule")
-_METHOD_FLAGS = ("gamma", "p", "p_ramp", "schedule", "clamp", "noise", "reinit", "reinit_interval",
+_METHOD_FLAGS = ("gamma", "p", "p_ramp", "schedule", "clamp", "noise", "noise_fixed_sigma", "perturb",
+                 "mixed_loss", "reinit", "reinit_interval",
                  "reinit_window", "r_max")
 
 

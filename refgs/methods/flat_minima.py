@@ -1,7 +1,7 @@
 """The paper's flat-minima method: Scale-Adaptive Perturbation, stochastic masks, schedule, clamp,
 periodic reinitialisation.  Reads like the paper's Method section: one function per idea.
 
-Spec: docs/spec/method.md (clauses FM-01..FM-12).  Paper: "Flat Minima Optimization" section,
+Spec: docs/spec/method.md (clauses FM-01..FM-11).  Paper: "Flat Minima Optimization" section,
 eq. (SAP)  x_i' = x_i + delta_i,  delta_i ~ N(0, gamma^2 Sigma_i),  Sigma_i = R_i S_i S_i^T R_i^T;
 eq. (stochastic)  perturbed with probability p;  eq. (schedule)  x_i' = x_i + alpha(t) delta_i,
 alpha(t) = t / T;  Experimental Setup: p_max = 0.3, gamma = 2, reinit every 1000 iterations for
@@ -86,6 +86,12 @@ class NoiseShape:
     fixed_sigma: float = 0.0
 
 
+#: "iso_fixed" noise: a fixed standard deviation of half the densification size threshold
+#: (percent_dense x scene extent, the clone/split boundary of TRN-05), the paper's ablation row
+#: "isotropic, fixed".  [FM-01]
+ISO_FIXED_FRACTION = 0.5
+
+
 def sap_offsets(gaussians: Gaussians, gamma: float = GAMMA, p: float = P_PERTURB, alpha: float = 1.0,
                 clamp: bool | str = True, rng: np.random.Generator | None = None,
                 noise: NoiseShape = NoiseShape()) -> tuple[np.ndarray, np.ndarray]:
@@ -151,6 +157,68 @@ def clipped_fraction(alpha: float, mode: str, gamma: float = GAMMA, n: int = 200
         return float(np.mean(np.abs(local) > 1))
     clamped = clamp_displacement(local, s, mode)
     return float(np.mean(np.any(clamped != local, axis=-1)))
+
+
+# ---------------------------------------------------------------------------------------------
+# Ablation: which parameter is perturbed [FM-10]
+# ---------------------------------------------------------------------------------------------
+
+#: The perturbed-parameter variants of the paper's ablation table ("position" is the method).
+PERTURB_TARGETS = ("position", "rotation", "scale", "opacity", "position+scale")
+#: Our choice (the paper gives no magnitudes for its ablation variants): standard deviations per
+#: unit of gamma, scheduled by alpha(t) like delta.  Rotation: angles (radians) about the three
+#: principal axes, 0.05 rad ~ 2.9 deg; scale: log-scale offsets, i.e. proportional to each axis
+#: (s_k exp(eps_k) ~ s_k (1 + eps_k)), 0.1 ~ 10 %; opacity: logit offsets, 0.1.  [FM-10]
+ROTATION_SIGMA = 0.05
+SCALE_SIGMA = 0.1
+OPACITY_SIGMA = 0.1
+
+
+def axis_angle_quats(omega: np.ndarray) -> np.ndarray:
+    """Unit quaternions (N,4) (w,x,y,z) of rotations by the vectors omega (N,3) (angle = |omega|)."""
+    angle = np.linalg.norm(omega, axis=-1)
+    half = 0.5 * angle
+    # sin(half)/angle, with its limit 1/2 at angle 0
+    k = np.where(angle > 1e-12, np.sin(half) / np.where(angle > 1e-12, angle, 1.0), 0.5)
+    return np.concatenate([np.cos(half)[:, None], omega * k[:, None]], axis=-1)
+
+
+def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton products a * b of (N,4) quaternions (w,x,y,z)."""
+    aw, ax, ay, az = (a[:, i] for i in range(4))
+    bw, bx, by, bz = (b[:, i] for i in range(4))
+    return np.stack([aw * bw - ax * bx - ay * by - az * bz,
+                     aw * bx + ax * bw + ay * bz - az * by,
+                     aw * by - ax * bz + ay * bw + az * bx,
+                     aw * bz + ax * by - ay * bx + az * bw], axis=-1)
+
+
+def perturb_other(gaussians: Gaussians, target: str, gamma: float, alpha: float, mask: np.ndarray,
+                  rng: np.random.Generator) -> dict:
+    """The non-position perturbations of the ablation [FM-10], on the rows of ``mask``.
+
+    Returns the replaced fields of theta_hat (a dict for ``Gaussians.replace``):
+      "rotation": q' = q * q(omega), omega ~ N(0, (alpha gamma ROTATION_SIGMA)^2 I): a rotation
+                  about the Gaussian's own principal axes (right multiplication)
+      "scale":    log s' = log s + alpha gamma SCALE_SIGMA z (proportional to each axis)
+      "opacity":  logit' = logit + alpha gamma OPACITY_SIGMA z
+    Draws N x 3 (rotation, scale) or N (opacity) normals after the caller's mask and offsets.
+    """
+    n = len(gaussians)
+    dt = gaussians.means.dtype
+    if target == "rotation":
+        omega = alpha * gamma * ROTATION_SIGMA * rng.standard_normal((n, 3))
+        q = gaussians.quats.astype(np.float64)
+        q2 = quat_multiply(q, axis_angle_quats(omega))
+        return {"quats": np.where(mask[:, None], q2, q).astype(dt)}
+    if target == "scale":
+        eps = alpha * gamma * SCALE_SIGMA * rng.standard_normal((n, 3))
+        return {"log_scales": np.where(mask[:, None], gaussians.log_scales + eps, gaussians.log_scales).astype(dt)}
+    if target == "opacity":
+        eps = alpha * gamma * OPACITY_SIGMA * rng.standard_normal(n)
+        return {"opacity_logits": np.where(mask, gaussians.opacity_logits + eps,
+                                           gaussians.opacity_logits).astype(dt)}
+    raise ValueError(f"perturb: expected one of {PERTURB_TARGETS}, got {target!r}")
 
 
 # ---------------------------------------------------------------------------------------------

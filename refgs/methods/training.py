@@ -20,8 +20,9 @@ import numpy as np
 from ..train.densify import reset_opacity
 from ..train.trainer import Method, RenderRequest, register_method
 from .dropgaussian import R_MAX, drop_opacity_scale
-from .flat_minima import (DEFAULT_CLAMP, GAMMA, P_PERTURB, REINIT_INTERVAL, REINIT_WINDOW, NoiseShape,
-                          is_reinit_iteration, magnitude_schedule, perturb_probability, reinit_values,
+from .flat_minima import (DEFAULT_CLAMP, GAMMA, ISO_FIXED_FRACTION, P_PERTURB, PERTURB_TARGETS,
+                          REINIT_INTERVAL, REINIT_WINDOW, NoiseShape, is_reinit_iteration,
+                          magnitude_schedule, perturb_other, perturb_probability, reinit_values,
                           sap_offsets)
 
 #: Parameter fields reinitialised and frozen by FM-07/FM-08 (SH: only coefficients k >= 1).
@@ -38,11 +39,21 @@ class FlatMinimaConfig:
     schedule: bool = True
     clamp: str = DEFAULT_CLAMP
     noise: str = "anisotropic"
-    noise_fixed_sigma: float = 0.0
+    #: for noise "iso_fixed": the standard deviation; None = ISO_FIXED_FRACTION x the
+    #: densification size threshold (percent_dense x extent), resolved when training starts
+    noise_fixed_sigma: float | None = None
     reinit: bool = True
     reinit_interval: int = REINIT_INTERVAL
     reinit_window: int = REINIT_WINDOW
     reinit_opacity_reset: bool = True
+    #: ablation (FM-10): which parameter theta_hat perturbs
+    perturb: str = "position"
+    #: ablation (FM-11): RWP-style mixed loss instead of the stochastic per-Gaussian mask
+    mixed_loss: bool = False
+
+    def __post_init__(self):
+        if self.perturb not in PERTURB_TARGETS:
+            raise ValueError(f"--fm-perturb: expected one of {PERTURB_TARGETS}, got {self.perturb!r}")
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -90,24 +101,40 @@ class FlatMinimaMethod(Method):
     def setup(self, trainer) -> None:
         if self.frozen_until.size != trainer.n:
             self.frozen_until = np.zeros(trainer.n, np.int64)
+        self.fixed_sigma = self.config.noise_fixed_sigma
+        if self.fixed_sigma is None:       # FM-01: half the densification size threshold
+            self.fixed_sigma = ISO_FIXED_FRACTION * trainer.cfg.densify.percent_dense * trainer.extent
 
     # FM-01..FM-04: theta_hat
     def render_request(self, trainer, t, rng):
         cfg = self.config
         total = trainer.cfg.iters
         alpha = magnitude_schedule(t, total) if cfg.schedule else 1.0
-        p = perturb_probability(t, total, cfg.p, cfg.p_ramp)
+        # FM-11: the mixed loss perturbs every Gaussian (p = 1) and adds a clean render
+        p = 1.0 if cfg.mixed_loss else perturb_probability(t, total, cfg.p, cfg.p_ramp)
         g = trainer.gaussians()
         offsets, mask = sap_offsets(g, gamma=cfg.gamma, p=p, alpha=alpha, clamp=cfg.clamp, rng=rng,
-                                    noise=NoiseShape(cfg.noise, cfg.noise_fixed_sigma))
+                                    noise=NoiseShape(cfg.noise, self.fixed_sigma))
         self.last_mask = mask
+        changes = {}
+        if cfg.perturb in ("position", "position+scale"):
+            changes["means"] = g.means + offsets
+        if cfg.perturb != "position":      # FM-10 ablation: the same mask, other fields
+            other = "scale" if cfg.perturb == "position+scale" else cfg.perturb
+            changes.update(perturb_other(g, other, cfg.gamma, alpha, mask, rng))
         scale = self.drop.opacity_scale(trainer, t, rng) if self.drop is not None else None
-        return RenderRequest(g.replace(means=g.means + offsets), opacity_scale=scale,
+        return RenderRequest(g.replace(**changes), opacity_scale=scale,
                              extra={"offsets": offsets, "mask": mask})
 
     # FM-05: the gradient at theta_hat is applied to theta (delta is a constant)
     def param_gradients(self, trainer, t, request, grads):
-        return grads.params()
+        if not self.config.mixed_loss:
+            return grads.params()
+        # FM-11: 0.5 grad L(theta_hat) + 0.5 grad L(theta); statistics stay the perturbed ones
+        clean_cfg = trainer.current_render_config
+        _, clean, _, _ = trainer.loss_and_grads(trainer.gaussians(), trainer.current_view, clean_cfg, t)
+        pert, cl = grads.params(), clean.params()
+        return {k: 0.5 * pert[k] + 0.5 * cl[k] for k in pert}
 
     # FM-08: frozen window
     def frozen_rows(self, trainer, t):

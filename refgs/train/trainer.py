@@ -234,6 +234,9 @@ class Trainer:
         #: the initial point cloud {"points": (M,3), "colors": (M,3)} the run started from, kept in
         #: every checkpoint (TRN-09); set by the caller that made it (refgs.cli.train)
         self.init_cloud: dict | None = None
+        #: the view and render settings of the iteration in progress (for Method hooks)
+        self.current_view: View | None = None
+        self.current_render_config: RenderConfig | None = None
         self.method.setup(self)
 
     # --- parameters -----------------------------------------------------------------------
@@ -266,17 +269,8 @@ class Trainer:
         request = self.method.render_request(self, t, self.rngs["method"])
         rcfg = RenderConfig(profile=cfg.profile, sh_degree=degree, background=bg,
                             opacity_scale=request.opacity_scale)
-        out = self.backend.render(request.gaussians, view.camera, rcfg)
-        image = out.image
-        shown = np.clip(image, 0.0, 1.0)
-        loss, v_image = photometric_loss(shown if cfg.clamp_render else image, view.image,
-                                         cfg.lambda_dssim, cfg.loss_form,
-                                         getattr(self.backend, "ssim_and_grad", None))
-        if not np.isfinite(loss):
-            raise TrainingDiverged(f"training diverged at iteration {t}: loss is {loss}")
-        if cfg.clamp_render:  # torch.clamp passes the gradient where min <= x <= max
-            v_image = v_image * ((image >= 0.0) & (image <= 1.0))
-        grads = self.backend.render_backward(out, v_image)
+        self.current_view, self.current_render_config = view, rcfg
+        loss, grads, out, shown = self.loss_and_grads(request.gaussians, view, rcfg, t)
         pgrads = self.method.param_gradients(self, t, request, grads)
 
         skip: set = set()
@@ -306,6 +300,24 @@ class Trainer:
             self.history[key].append(v)
         self.train_seconds += seconds
         return {"t": t, "loss": loss, "psnr": value, "view": view.name}
+
+    def loss_and_grads(self, gaussians: Gaussians, view: View, rcfg: RenderConfig, t: int):
+        """Render ``gaussians`` from ``view``, the loss against its image and the backward
+        (TRN-01): returns ``(loss, Gradients, render output, clamped image)``.  Methods that need
+        a second render in an iteration (the mixed-loss ablation, FM-11) call it with
+        ``current_view`` / ``current_render_config``."""
+        cfg = self.cfg
+        out = self.backend.render(gaussians, view.camera, rcfg)
+        image = out.image
+        shown = np.clip(image, 0.0, 1.0)
+        loss, v_image = photometric_loss(shown if cfg.clamp_render else image, view.image,
+                                         cfg.lambda_dssim, cfg.loss_form,
+                                         getattr(self.backend, "ssim_and_grad", None))
+        if not np.isfinite(loss):
+            raise TrainingDiverged(f"training diverged at iteration {t}: loss is {loss}")
+        if cfg.clamp_render:  # torch.clamp passes the gradient where min <= x <= max
+            v_image = v_image * ((image >= 0.0) & (image <= 1.0))
+        return loss, self.backend.render_backward(out, v_image), out, shown
 
     # --- evaluation -----------------------------------------------------------------------
     def render_view(self, view: View) -> np.ndarray:
