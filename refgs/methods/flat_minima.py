@@ -144,17 +144,20 @@ def sap_offsets(gaussians: Gaussians, gamma: float = GAMMA, p: float = P_PERTURB
     return offsets.astype(dt), mask
 
 
-def clipped_fraction(alpha: float, mode: str, gamma: float = GAMMA, n: int = 200_000, seed: int = 0) -> float:
+def clipped_fraction(alpha: float, mode: str, gamma: float = GAMMA, n: int = 200_000, seed: int = 0,
+                     scales=(1.0, 1.0, 1.0)) -> float:
     """Monte-Carlo fraction of Gaussians (for "axis": of axes) the clamp changes at ``alpha`` [FM-04].
 
-    The fraction does not depend on the scales or rotation (the clamp acts in units of s).
-    For "axis" it equals P(|alpha gamma z| > 1) = erfc(1 / (sqrt(2) alpha gamma)) per axis.
+    Never depends on the rotation.  For "axis", "box" and "ellipsoid" it does not depend on the
+    scales either (they clamp in units of s); for "axis" it equals P(|alpha gamma z| > 1) =
+    erfc(1 / (sqrt(2) alpha gamma)) per axis.  For "norm" (bound ||s||, not per axis) it depends
+    on the axis ratios: ``scales`` gives them (default isotropic).
     """
     rng = np.random.default_rng(seed)
-    local = alpha * gamma * rng.standard_normal((n, 3))
-    s = np.ones((n, 3))
+    s = np.broadcast_to(np.asarray(scales, np.float64), (n, 3))
+    local = alpha * gamma * s * rng.standard_normal((n, 3))
     if mode == "axis":
-        return float(np.mean(np.abs(local) > 1))
+        return float(np.mean(np.abs(local) > s))
     clamped = clamp_displacement(local, s, mode)
     return float(np.mean(np.any(clamped != local, axis=-1)))
 
