@@ -8,6 +8,8 @@
     refgs render RUN_DIR [--split test|train|all]
     refgs demo [--out DIR] [--iters N]
     refgs bench [--n N ...] [--size WxH ...] [--backends ...] [--fern-run RUN] [--out DIR]
+    refgs flatness RUN_DIR ... [--gammas G ...] [--seeds S] [--settings flatness|training]
+    refgs table RUN_DIR ... [--metrics psnr ssim lpips_vgg] [--out DIR]
 
 Bad input (missing folder, corrupt model, empty image folder, unsupported camera, --views too
 large, ...) ends with ONE line ``refgs: error: ...`` on stderr naming the file or flag, exit
@@ -511,7 +513,11 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--quiet", action="store_true")
 
     from .bench import add_parser as _add_bench
+    from .flatness import add_parser as _add_flatness
+    from .tables import add_parser as _add_table
     _add_bench(sub)
+    _add_flatness(sub)
+    _add_table(sub)
     return p
 
 
@@ -606,6 +612,12 @@ def main(argv: list | None = None) -> int:
         elif args.command == "bench":
             from .bench import run as bench_run
             bench_run(args)
+        elif args.command == "flatness":
+            from .flatness import run as flatness_run
+            flatness_run(args)
+        elif args.command == "table":
+            from .tables import run as table_run
+            table_run(args)
         return 0
     except RefgsError as exc:
         print(f"refgs: error: {_one_line(exc)}", file=sys.stderr)

@@ -320,11 +320,13 @@ class Trainer:
         return loss, self.backend.render_backward(out, v_image), out, shown
 
     # --- evaluation -----------------------------------------------------------------------
-    def render_view(self, view: View) -> np.ndarray:
-        """Plain render of the stored parameters, clamped to [0, 1] (TRN-07)."""
+    def render_view(self, view: View, gaussians: Gaussians | None = None) -> np.ndarray:
+        """Plain render of the stored parameters (or of ``gaussians``, e.g. perturbed ones for
+        the flatness analysis), clamped to [0, 1] (TRN-07)."""
         rcfg = RenderConfig(profile=self.cfg.profile, sh_degree=sh_degree_at(self.t, self.cfg.sh_degree),
                             background=self.eval_background())
-        return np.clip(self.backend.render(self.gaussians(), view.camera, rcfg).image, 0.0, 1.0)
+        g = self.gaussians() if gaussians is None else gaussians
+        return np.clip(self.backend.render(g, view.camera, rcfg).image, 0.0, 1.0)
 
     def test_psnr(self) -> float:
         """Mean PSNR over the test views (recorded in the history)."""

@@ -1,0 +1,170 @@
+"""``refgs flatness``: how robust a trained model is to position perturbations (FM-12).
+
+The paper's perturbation-robustness figure: apply Scale-Adaptive Perturbation to a trained model
+-- by default with p = 1, alpha = 1 and no clamp (every Gaussian moved by gamma R S z), or with
+the training settings (p = 0.3, the axis clamp) -- and measure PSNR on the training and the test
+views, mean +- standard deviation over seeds, for each gamma.  A flatter minimum loses less.
+
+    refgs flatness RUN_DIR [RUN_DIR ...] [--gammas 0 0.2 0.4 0.6 0.8 1.0] [--seeds 5]
+                   [--settings flatness|training] [--backend NAME] [--out DIR]
+
+Writes ``flatness.json``, ``flatness.csv`` and ``flatness.png`` (train and test panels, one curve
+per run) into ``--out``.  Seeds: the perturbation of (gamma index k, seed s) is drawn from
+``np.random.default_rng([s, k])``, so every number is reproducible and each gamma has its own
+stream.
+"""
+from __future__ import annotations
+
+import csv
+import io
+from pathlib import Path
+
+import numpy as np
+
+from .errors import ConfigError
+from .io.atomic import atomic_path, atomic_write_json, atomic_write_text
+from .metrics.psnr import psnr
+from .methods.flat_minima import DEFAULT_CLAMP, P_PERTURB, sap_offsets
+
+#: The paper's figure: gamma on the x axis, 5 seeds.  [FM-12]
+DEFAULT_GAMMAS = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0)
+DEFAULT_SEEDS = 5
+#: Perturbation settings.  "flatness": every Gaussian, full magnitude, no clamp (the analysis);
+#: "training": the settings the method trains with at t = T (p = 0.3, alpha = 1, axis clamp).
+SETTINGS = {"flatness": {"p": 1.0, "alpha": 1.0, "clamp": "none"},
+            "training": {"p": P_PERTURB, "alpha": 1.0, "clamp": DEFAULT_CLAMP}}
+
+
+def _mean_psnr(trainer, views, gaussians) -> float:
+    return float(np.mean([psnr(trainer.render_view(v, gaussians), v.image) for v in views]))
+
+
+def _check(gammas, seeds: int, settings: str) -> None:
+    if settings not in SETTINGS:
+        raise ConfigError(f"--settings: expected one of {sorted(SETTINGS)}, got {settings!r}")
+    if seeds < 1:
+        raise ConfigError(f"--seeds: expected at least 1, got {seeds}")
+    if not gammas or any(not np.isfinite(g) or g < 0 for g in gammas):
+        raise ConfigError(f"--gammas: expected finite values >= 0, got {list(gammas)}")
+
+
+def flatness_curve(trainer, gammas=DEFAULT_GAMMAS, seeds: int = DEFAULT_SEEDS,
+                   settings: str = "flatness", progress=None) -> dict:
+    """PSNR of the trainer's model under SAP for each gamma (module docstring).
+
+    Returns {"gammas", "settings", "train"/"test": {"mean", "std", "all" (gammas x seeds)}}; the
+    standard deviation is the sample one (ddof 1), 0 for a single seed or gamma = 0.
+    """
+    _check(gammas, seeds, settings)
+    opts = SETTINGS[settings]
+    g = trainer.gaussians()
+    res = {"gammas": [float(x) for x in gammas], "settings": settings, **opts}
+    for split, views in (("train", trainer.train_views), ("test", trainer.test_views)):
+        res[split] = {"all": []}
+    clean = {split: _mean_psnr(trainer, views, g)
+             for split, views in (("train", trainer.train_views), ("test", trainer.test_views))}
+    for k, gamma in enumerate(gammas):
+        rows = {"train": [], "test": []}
+        for s in range(seeds):
+            if gamma == 0:
+                vals = clean
+            else:
+                off, _ = sap_offsets(g, gamma=float(gamma), p=opts["p"], alpha=opts["alpha"],
+                                     clamp=opts["clamp"], rng=np.random.default_rng([s, k]))
+                gh = g.replace(means=g.means + off)
+                vals = {split: _mean_psnr(trainer, views, gh)
+                        for split, views in (("train", trainer.train_views), ("test", trainer.test_views))}
+            for split in rows:
+                rows[split].append(vals[split])
+            if progress is not None:
+                progress()
+        for split in rows:
+            res[split]["all"].append(rows[split])
+    for split in ("train", "test"):
+        a = np.asarray(res[split]["all"])
+        res[split]["mean"] = a.mean(axis=1).tolist()
+        res[split]["std"] = (a.std(axis=1, ddof=1) if a.shape[1] > 1 else np.zeros(len(a))).tolist()
+    return res
+
+
+def _plot(curves: dict, path: Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharex=True)
+    for ax, split in zip(axes, ("train", "test")):
+        for label, c in curves.items():
+            ax.errorbar(c["gammas"], c[split]["mean"], yerr=c[split]["std"], marker="o", capsize=3,
+                        label=label)
+        ax.set_title(f"{split} views")
+        ax.set_xlabel(r"perturbation $\gamma$")
+        ax.set_ylabel("PSNR (dB)")
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    fig.suptitle("robustness to position perturbations (SAP; mean +- std over seeds)")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+
+
+def add_parser(sub) -> None:
+    f = sub.add_parser("flatness", help="PSNR of trained runs under SAP position perturbations")
+    f.add_argument("run_dirs", nargs="+")
+    f.add_argument("--gammas", type=float, nargs="+", default=list(DEFAULT_GAMMAS))
+    f.add_argument("--seeds", type=int, default=DEFAULT_SEEDS)
+    f.add_argument("--settings", default="flatness", choices=sorted(SETTINGS))
+    f.add_argument("--backend", help="render with this backend instead of the run's")
+    f.add_argument("--out", default="flatness-out")
+    f.add_argument("--quiet", action="store_true")
+
+
+def run(args) -> dict:
+    """The ``refgs flatness`` command; returns {run label: curve}."""
+    from .cli import _restore
+    from .train.backend import get_backend
+
+    _check(args.gammas, args.seeds, args.settings)
+    curves, labels = {}, []
+    trainers = []
+    for rd in args.run_dirs:
+        config, cfg, trainer = _restore(Path(rd).absolute())
+        if args.backend:
+            trainer.backend = get_backend(args.backend)
+        label = f"{Path(rd).name} ({cfg.method}, t={trainer.t})"
+        trainers.append((label, trainer))
+    total = len(trainers) * len(args.gammas) * args.seeds
+    bar = None
+    if not args.quiet:
+        from tqdm import tqdm
+        bar = tqdm(total=total, desc="flatness", unit="render set")
+    for label, trainer in trainers:
+        curves[label] = flatness_curve(trainer, args.gammas, args.seeds, args.settings,
+                                       progress=(bar.update if bar is not None else None))
+        labels.append(label)
+    if bar is not None:
+        bar.close()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_json(out / "flatness.json", {"runs": curves})
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    w.writerow(["run", "gamma", "train_psnr_mean", "train_psnr_std", "test_psnr_mean", "test_psnr_std"])
+    for label, c in curves.items():
+        for i, gmm in enumerate(c["gammas"]):
+            w.writerow([label, gmm, c["train"]["mean"][i], c["train"]["std"][i], c["test"]["mean"][i],
+                        c["test"]["std"][i]])
+    atomic_write_text(out / "flatness.csv", buf.getvalue())
+    _plot(curves, out / "flatness.png")
+    if not args.quiet:
+        for label, c in curves.items():
+            print(label)
+            print("  gamma  " + "  ".join(f"{x:>12.2f}" for x in c["gammas"]))
+            for split in ("train", "test"):
+                print(f"  {split:5s}  " + "  ".join(f"{m:6.2f}+-{s:4.2f}" for m, s in
+                                                  zip(c[split]["mean"], c[split]["std"])))
+        print(f"written to {out}")
+    return curves
+
+
+__all__ = ["flatness_curve", "run", "DEFAULT_GAMMAS", "DEFAULT_SEEDS", "SETTINGS"]

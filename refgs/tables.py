@@ -1,0 +1,156 @@
+"""``refgs table``: runs aggregated into the paper's kind of table (FM-13).
+
+    refgs table RUN_DIR [RUN_DIR ...] [--metrics psnr ssim lpips_vgg] [--out DIR]
+
+Each run directory contributes its ``config.json`` (scene, number of views, method and method
+parameters, seed) and ``metrics.json`` (the test-view means).  Rows are grouped by scene, views
+and method label -- the method name, ``+fm`` for the plug-in, and every method parameter that
+differs from its default in brackets (``fm[perturb=rotation]``) -- and reported as mean +-
+standard deviation over seeds (sample std, ddof 1; 0 for one seed), then, per views and method,
+over scenes (mean of the per-scene means +- their std).  Printed as Markdown and written as
+``table.csv`` and ``table.md``.
+"""
+from __future__ import annotations
+
+import csv
+import io
+import json
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+
+from .errors import ConfigError
+from .io.atomic import atomic_write_text
+
+DEFAULT_METRICS = ("psnr", "ssim", "lpips_vgg")
+
+
+def method_label(settings: dict) -> str:
+    """Method name, ``+fm`` for the plug-in, and the non-default method parameters."""
+    from .methods.dropgaussian import R_MAX
+    from .methods.training import FlatMinimaConfig
+
+    params = dict(settings.get("method_params") or {})
+    name = settings.get("method", "3dgs")
+    fm = params.pop("fm", False)
+    label = name + ("+fm" if fm and name != "fm" else "")
+    defaults = asdict(FlatMinimaConfig())
+    defaults["r_max"] = R_MAX
+    diff = [f"{k}={params[k]}" for k in sorted(params) if k in defaults and params[k] != defaults[k]]
+    return label + (f"[{','.join(diff)}]" if diff else "")
+
+
+def load_run(run_dir: str | Path) -> dict:
+    """scene, views, label, seed and metrics of a finished run; ConfigError naming the file."""
+    run_dir = Path(run_dir)
+    out = {}
+    for name in ("config.json", "metrics.json"):
+        path = run_dir / name
+        if not path.is_file():
+            raise ConfigError(f"{path}: not found (is {run_dir} a finished refgs run? "
+                              f"finish it with refgs train --resume {run_dir})")
+        try:
+            out[name] = json.loads(path.read_text())
+        except ValueError as exc:
+            raise ConfigError(f"{path}: not valid JSON ({exc})") from None
+    s = out["config.json"].get("settings", {})
+    return {"run": str(run_dir), "scene": Path(s.get("scene", "?")).name, "views": s.get("views"),
+            "label": method_label(s), "seed": s.get("seed"), "metrics": out["metrics.json"]}
+
+
+def _mean_std(values) -> tuple[float, float]:
+    a = np.asarray(values, np.float64)
+    return float(a.mean()), float(a.std(ddof=1)) if a.size > 1 else 0.0
+
+
+def aggregate(runs: list[dict], metrics=DEFAULT_METRICS) -> dict:
+    """{"per_scene": [...], "over_scenes": [...]} rows with mean/std/n per metric."""
+    seen = {}
+    for r in runs:
+        key = (r["scene"], r["views"], r["label"], r["seed"])
+        if key in seen:
+            raise ConfigError(f"{r['run']}: same scene, views, method and seed as {seen[key]}")
+        seen[key] = r["run"]
+    groups: dict = {}
+    for r in runs:
+        groups.setdefault((r["scene"], r["views"], r["label"]), []).append(r)
+    per_scene = []
+    for (scene, views, label), rs in sorted(groups.items(), key=lambda kv: (str(kv[0][0]), kv[0][1] or 0,
+                                                                              kv[0][2])):
+        row = {"scene": scene, "views": views, "method": label, "seeds": sorted(r["seed"] for r in rs)}
+        for m in metrics:
+            vals = [r["metrics"].get(m) for r in rs]
+            if any(v is None for v in vals):
+                row[m] = None
+            else:
+                row[m] = dict(zip(("mean", "std"), _mean_std(vals)), n=len(vals))
+        per_scene.append(row)
+    over: dict = {}
+    for row in per_scene:
+        over.setdefault((row["views"], row["method"]), []).append(row)
+    over_rows = []
+    for (views, label), rows in sorted(over.items(), key=lambda kv: (kv[0][0] or 0, kv[0][1])):
+        row = {"views": views, "method": label, "scenes": [r["scene"] for r in rows]}
+        for m in metrics:
+            means = [r[m]["mean"] for r in rows if r[m] is not None]
+            row[m] = (dict(zip(("mean", "std"), _mean_std(means)), n=len(means))
+                      if len(means) == len(rows) else None)
+        over_rows.append(row)
+    return {"metrics": list(metrics), "per_scene": per_scene, "over_scenes": over_rows}
+
+
+def _cell(v, digits: int) -> str:
+    return "-" if v is None else f"{v['mean']:.{digits}f} ± {v['std']:.{digits}f}"
+
+
+def markdown(table: dict) -> str:
+    ms = table["metrics"]
+    digits = {m: (2 if m == "psnr" else 3) for m in ms}
+    lines = ["| scene | views | method | seeds | " + " | ".join(ms) + " |",
+             "|---|---|---|---|" + "---|" * len(ms)]
+    for r in table["per_scene"]:
+        lines.append(f"| {r['scene']} | {r['views']} | {r['method']} | {len(r['seeds'])} | "
+                     + " | ".join(_cell(r[m], digits[m]) for m in ms) + " |")
+    lines += ["", "| views | method | scenes | " + " | ".join(ms) + " |",
+              "|---|---|---|" + "---|" * len(ms)]
+    for r in table["over_scenes"]:
+        lines.append(f"| {r['views']} | {r['method']} | {len(r['scenes'])} | "
+                     + " | ".join(_cell(r[m], digits[m]) for m in ms) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _csv(table: dict) -> str:
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    ms = table["metrics"]
+    w.writerow(["level", "scene", "views", "method", "n"] + [f"{m}_{s}" for m in ms for s in ("mean", "std")])
+    for level, rows in (("scene", table["per_scene"]), ("over_scenes", table["over_scenes"])):
+        for r in rows:
+            n = len(r.get("seeds", r.get("scenes", [])))
+            vals = []
+            for m in ms:
+                vals += ["", ""] if r[m] is None else [r[m]["mean"], r[m]["std"]]
+            w.writerow([level, r.get("scene", "all"), r["views"], r["method"], n] + vals)
+    return buf.getvalue()
+
+
+def add_parser(sub) -> None:
+    t = sub.add_parser("table", help="aggregate finished runs: mean +- std over seeds and scenes")
+    t.add_argument("run_dirs", nargs="+")
+    t.add_argument("--metrics", nargs="+", default=list(DEFAULT_METRICS))
+    t.add_argument("--out", default="table-out")
+
+
+def run(args) -> dict:
+    table = aggregate([load_run(r) for r in args.run_dirs], args.metrics)
+    out = Path(args.out)
+    md = markdown(table)
+    atomic_write_text(out / "table.md", md)
+    atomic_write_text(out / "table.csv", _csv(table))
+    print(md, end="")
+    print(f"written to {out}")
+    return table
+
+
+__all__ = ["aggregate", "load_run", "markdown", "method_label", "run"]

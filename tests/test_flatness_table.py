@@ -1,0 +1,94 @@
+"""``refgs flatness`` (FM-12) and ``refgs table`` (FM-13) on tiny runs of the test scene."""
+from __future__ import annotations
+
+import json
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from refgs.cli import main
+from refgs.flatness import flatness_curve
+from refgs.tables import aggregate, load_run, markdown, method_label
+
+from test_cli import run_cli, tiny_args, write_tiny_scene
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    root = tmp_path_factory.mktemp("fl")
+    scene = write_tiny_scene(root / "scene")
+    out = {}
+    for method, seed, extra in (("3dgs", 3, ()), ("3dgs", 4, ()), ("fm", 3, ()),
+                                ("fm", 4, ("--fm-perturb", "scale"))):
+        d = root / f"{method}_{seed}_{len(extra)}"
+        args = tiny_args(scene, d, 12, "--method", method, *extra)
+        args[args.index("--seed") + 1] = str(seed)
+        assert main(args) == 0
+        out[(method, seed, extra)] = d
+    return out
+
+
+def test_fm12_flatness_curve(runs):
+    from refgs.cli import _restore
+    _, _, tr = _restore(runs[("fm", 3, ())])
+    c = flatness_curve(tr, gammas=(0.0, 0.5, 3.0), seeds=3)
+    assert c["p"] == 1.0 and c["alpha"] == 1.0 and c["clamp"] == "none"
+    for split in ("train", "test"):
+        all_ = np.asarray(c[split]["all"])
+        assert all_.shape == (3, 3)
+        assert np.all(all_[0] == all_[0, 0]) and c[split]["std"][0] == 0.0     # gamma 0: no noise
+        assert c[split]["std"][1] > 0
+    from refgs.metrics.psnr import psnr
+    clean = np.mean([psnr(tr.render_view(v), v.image) for v in tr.test_views])
+    assert c["test"]["mean"][0] == pytest.approx(clean, abs=1e-12)
+    assert c["train"]["mean"][2] < c["train"]["mean"][0]          # a large gamma hurts
+    again = flatness_curve(tr, gammas=(0.0, 0.5, 3.0), seeds=3)
+    assert again["test"]["all"] == c["test"]["all"]                # seeded: reproducible
+    tr_set = flatness_curve(tr, gammas=(3.0,), seeds=2, settings="training")
+    assert tr_set["p"] == 0.3 and tr_set["clamp"] == "axis"
+    assert tr_set["train"]["mean"][0] > c["train"]["mean"][2]      # p = 0.3 and the clamp: milder
+
+
+def test_flatness_command_writes_json_csv_plot(runs, tmp_path, capsys):
+    rc, out, err = run_cli(["flatness", runs[("3dgs", 3, ())], runs[("fm", 3, ())], "--gammas", "0",
+                            "0.4", "--seeds", "2", "--out", tmp_path, "--quiet"], capsys)
+    assert rc == 0, err
+    doc = json.loads((tmp_path / "flatness.json").read_text())
+    assert len(doc["runs"]) == 2
+    assert (tmp_path / "flatness.csv").read_text().count("\n") == 1 + 2 * 2
+    assert (tmp_path / "flatness.png").stat().st_size > 0
+    rc, _, err = run_cli(["flatness", runs[("fm", 3, ())], "--seeds", "0", "--out", tmp_path], capsys)
+    assert rc == 2 and err.startswith("refgs: error: --seeds")
+
+
+def test_fm13_method_labels():
+    assert method_label({"method": "3dgs", "method_params": {}}) == "3dgs"
+    assert method_label({"method": "dropgaussian", "method_params": {"fm": True, "gamma": 2.0}}) == "dropgaussian+fm"
+    assert method_label({"method": "fm", "method_params": {"perturb": "rotation", "reinit": False,
+                                                           "gamma": 2.0}}) == "fm[perturb=rotation,reinit=False]"
+
+
+def test_fm13_table_mean_std_over_seeds_and_scenes(runs, tmp_path, capsys):
+    loaded = [load_run(d) for d in runs.values()]
+    t = aggregate(loaded)
+    rows = {r["method"]: r for r in t["per_scene"]}
+    assert set(rows) == {"3dgs", "fm", "fm[perturb=scale]"}
+    ps = [json.loads((runs[("3dgs", s, ())] / "metrics.json").read_text())["psnr"] for s in (3, 4)]
+    assert rows["3dgs"]["psnr"]["mean"] == pytest.approx(np.mean(ps))
+    assert rows["3dgs"]["psnr"]["std"] == pytest.approx(np.std(ps, ddof=1))
+    assert rows["fm"]["psnr"]["std"] == 0.0 and rows["fm"]["psnr"]["n"] == 1
+    assert rows["3dgs"]["lpips_vgg"] is None          # the tiny runs skip LPIPS
+    # a second "scene": the same runs under another name -> over-scenes mean of the scene means
+    other = [dict(r, scene="other", run=r["run"] + "'") for r in loaded]
+    t2 = aggregate(loaded + other)
+    over = {r["method"]: r for r in t2["over_scenes"]}
+    assert over["3dgs"]["psnr"]["mean"] == pytest.approx(np.mean(ps)) and over["3dgs"]["psnr"]["n"] == 2
+    assert "± " in markdown(t2)
+    with pytest.raises(Exception, match="same scene, views, method and seed"):
+        aggregate(loaded + loaded[:1])
+    rc, out, _ = run_cli(["table", *runs.values(), "--out", tmp_path], capsys)
+    assert rc == 0 and "| scene | views | method |" in out
+    assert (tmp_path / "table.csv").read_text().startswith("level,scene,views,method,n,psnr_mean")
+    rc, _, err = run_cli(["table", tmp_path / "nope", "--out", tmp_path], capsys)
+    assert rc == 2 and err.startswith("refgs: error:") and "config.json" in err
