@@ -256,18 +256,9 @@ def bench_scene(label, n, size, g64, cam, backends, repeats: int, profile: str) 
     return res
 
 
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
-
-
 def machine_info() -> dict:
-    info = {"machine": platform.machine(), "cpu": _cpu_model(), "cpus": os.cpu_count(),
+    from .train.checkpoint import _cpu_name
+    info = {"machine": platform.machine(), "cpu": _cpu_name(), "cpus": os.cpu_count(),
             "python": platform.python_version(), "numpy": np.__version__,
             "loadavg_before": list(os.getloadavg())}
     try:
