@@ -14,6 +14,7 @@ from scipy.special import erfc
 
 import refgs
 from refgs.covariance import covariance_3d
+from strategies import max_examples
 from refgs.methods import (CLAMP_MODES, NoiseShape, clamp_displacement, clipped_fraction,
                            drop_opacity_scale, drop_rate, magnitude_schedule, perturb_probability,
                            sap_offsets)
@@ -33,7 +34,7 @@ gaussian_shape = st.tuples(
     st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(lambda q: np.linalg.norm(q) > 0.1))
 
 
-@settings(max_examples=8, deadline=None)
+@settings(max_examples=max_examples(8), deadline=None)
 @given(shape=gaussian_shape, seed=st.integers(0, 2 ** 31), alpha=st.sampled_from([1.0, 0.5, 0.25]))
 def test_fm01_covariance_is_alpha2_gamma2_sigma(shape, seed, alpha):
     """FM-01, FM-03: with p = 1 and no clamp, delta ~ N(0, alpha^2 gamma^2 Sigma).
@@ -56,7 +57,7 @@ def test_fm01_covariance_is_alpha2_gamma2_sigma(shape, seed, alpha):
     assert np.all(np.abs(c - np.eye(3)) <= Z_BOUND * sd), c
 
 
-@settings(max_examples=10, deadline=None)
+@settings(max_examples=max_examples(10), deadline=None)
 @given(shape=gaussian_shape, seed=st.integers(0, 2 ** 31), alpha=st.floats(0.05, 3.0),
        mode=st.sampled_from([m for m in CLAMP_MODES if m != "none"]),
        dtype=st.sampled_from([np.float64, np.float32]))

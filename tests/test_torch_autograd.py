@@ -19,6 +19,7 @@ torch = pytest.importorskip("torch")
 
 import refgs  # noqa: E402
 from oracle.adapters import torch_backend as tb  # noqa: E402
+from strategies import max_examples  # noqa: E402
 
 pytestmark = pytest.mark.torch
 
@@ -101,7 +102,7 @@ def compare(g, cam, cfg, v, dtype="float64", check=True):
 # random scenes
 # ----------------------------------------------------------------------------------------------
 
-@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=max_examples(30), deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(seed=st.integers(0, 2**32 - 1), n=st.integers(1, 24),
        profile=st.sampled_from(["inria", "gsplat"]), degree=st.integers(0, 3),
        extra_k=st.booleans(), use_alpha=st.booleans(), use_depth=st.booleans(),
