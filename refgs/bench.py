@@ -28,7 +28,6 @@ Writes ``bench.json``, ``bench.csv``, ``pareto.png`` (time against error) and ``
 """
 from __future__ import annotations
 
-import argparse
 import csv
 import io
 import json

@@ -125,10 +125,10 @@ def run(args) -> dict:
     from .train.backend import get_backend
 
     _check(args.gammas, args.seeds, args.settings)
-    curves, labels = {}, []
+    curves = {}
     trainers = []
     for rd in args.run_dirs:
-        config, cfg, trainer = _restore(Path(rd).absolute())
+        _, cfg, trainer = _restore(Path(rd).absolute())
         if args.backend:
             trainer.backend = get_backend(args.backend)
         label = f"{Path(rd).name} ({cfg.method}, t={trainer.t})"
@@ -141,7 +141,6 @@ def run(args) -> dict:
     for label, trainer in trainers:
         curves[label] = flatness_curve(trainer, args.gammas, args.seeds, args.settings,
                                        progress=(bar.update if bar is not None else None))
-        labels.append(label)
     if bar is not None:
         bar.close()
     out = Path(args.out)
