@@ -94,15 +94,19 @@ def test_reference_run_densified(reference):
     assert meta["iteration"] == ITERS
 
 
-def test_resume_after_kill(scene, reference, tmp_path):
-    out = tmp_path / "run"
-
+def kill_at(scene, out, t_kill: int) -> None:
+    """Start a run in ``out`` and kill it (an exception, as a crash) after iteration ``t_kill``."""
     def kill(trainer, stop):
-        if trainer.t == 7:  # after the checkpoint at 5; densification at 8 and 12 follow
+        if trainer.t == t_kill:
             raise SimulatedKill
 
     with pytest.raises(SimulatedKill):
         train(config(scene, out), out, progress=False, callback=kill)
+
+
+def test_resume_after_kill(scene, reference, tmp_path):
+    out = tmp_path / "run"
+    kill_at(scene, out, 7)  # after the checkpoint at 5; densification at 8 and 12 follow
     _, meta = load_checkpoint(out / "checkpoint.npz")
     assert meta["iteration"] == 5
     assert not (out / "metrics.json").exists()
@@ -130,13 +134,7 @@ def test_resume_after_ctrl_c(scene, reference, tmp_path):
 
 def test_kill_before_first_checkpoint_leaves_nothing(scene, tmp_path):
     out = tmp_path / "run"
-
-    def kill(trainer, stop):
-        if trainer.t == 3:
-            raise SimulatedKill
-
-    with pytest.raises(SimulatedKill):
-        train(config(scene, out), out, progress=False, callback=kill)
+    kill_at(scene, out, 3)
     assert list(tmp_path.iterdir()) == []
 
 
@@ -232,13 +230,7 @@ def test_checkpoint_holds_the_initial_cloud(scene, tmp_path):
     from refgs.data.pointcloud import read_ply
 
     out = tmp_path / "run"
-
-    def kill(trainer, stop):
-        if trainer.t == 7:
-            raise SimulatedKill
-
-    with pytest.raises(SimulatedKill):
-        train(config(scene, out), out, progress=False, callback=kill)
+    kill_at(scene, out, 7)
     arrays, _ = load_checkpoint(out / "checkpoint.npz")
     pts, cols = read_ply(out / "init_points.ply")
     assert arrays["init/points"].shape == pts.shape and len(pts) > 0
