@@ -91,6 +91,8 @@ class FlatMinimaMethod(Method):
             self.name = "dropgaussian+fm"
         self.frozen_until = np.zeros(0, np.int64)   # per Gaussian: last iteration without a step
         self.last_mask = np.zeros(0, bool)
+        #: noise "iso_fixed": the standard deviation (None until ``setup`` resolves the default)
+        self.fixed_sigma = config.noise_fixed_sigma
 
     def params_dict(self) -> dict:
         d = {f"fm_{k}": v for k, v in self.config.to_dict().items()}
@@ -101,7 +103,6 @@ class FlatMinimaMethod(Method):
     def setup(self, trainer) -> None:
         if self.frozen_until.size != trainer.n:
             self.frozen_until = np.zeros(trainer.n, np.int64)
-        self.fixed_sigma = self.config.noise_fixed_sigma
         if self.fixed_sigma is None:       # FM-01: half the densification size threshold
             self.fixed_sigma = ISO_FIXED_FRACTION * trainer.cfg.densify.percent_dense * trainer.extent
 
