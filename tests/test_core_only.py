@@ -88,3 +88,17 @@ def test_train_and_eval_run_without_optional_packages(tmp_path):
     """)
     assert r.returncode == 0, r.stdout + r.stderr
     assert "psnr" in r.stdout
+
+
+def test_bench_without_optional_packages(tmp_path):
+    """``refgs bench`` runs the reference alone and lists the optional backends as n/a."""
+    r = run_blocked(f"""
+        import json
+        from refgs.cli import main
+        assert main(['bench', '--n', '60', '--size', '24x16', '--repeats', '1', '--no-plots',
+                     '--out', {str(tmp_path)!r}]) == 0
+        doc = json.load(open({str(tmp_path / 'bench.json')!r}))
+        print(sorted(doc['results'][0]['backends']), sorted(doc['unavailable']))
+    """)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "['ref32', 'ref64'] ['fast32', 'fast64', 'gsplat', 'torch32', 'torch64']" in r.stdout, r.stdout
