@@ -10,6 +10,7 @@
     refgs bench [--n N ...] [--size WxH ...] [--backends ...] [--fern-run RUN] [--out DIR]
     refgs flatness RUN_DIR ... [--gammas G ...] [--seeds S] [--settings flatness|training]
     refgs table RUN_DIR ... [--metrics psnr ssim lpips_vgg] [--out DIR]
+    refgs figures RUN_DIR ... [--flatness DIR ...] [--out figures]
 
 Bad input (missing folder, corrupt model, empty image folder, unsupported camera, --views too
 large, ...) ends with ONE line ``refgs: error: ...`` on stderr naming the file or flag, exit
@@ -513,11 +514,13 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--quiet", action="store_true")
 
     from .bench import add_parser as _add_bench
+    from .figures import add_parser as _add_figures
     from .flatness import add_parser as _add_flatness
     from .tables import add_parser as _add_table
     _add_bench(sub)
     _add_flatness(sub)
     _add_table(sub)
+    _add_figures(sub)
     return p
 
 
@@ -618,6 +621,9 @@ def main(argv: list | None = None) -> int:
         elif args.command == "table":
             from .tables import run as table_run
             table_run(args)
+        elif args.command == "figures":
+            from .figures import run as figures_run
+            figures_run(args)
         return 0
     except RefgsError as exc:
         print(f"refgs: error: {_one_line(exc)}", file=sys.stderr)

@@ -37,6 +37,10 @@ def method_label(settings: dict) -> str:
     label = name + ("+fm" if fm and name != "fm" else "")
     defaults = asdict(FlatMinimaConfig())
     defaults["r_max"] = R_MAX
+    if params.get("noise", defaults["noise"]) != "iso_fixed":
+        # the fixed sigma only applies to "iso_fixed" noise (runs of refgs 0.1.0 before the
+        # default became None record 0.0 here)
+        params.pop("noise_fixed_sigma", None)
     diff = [f"{k}={params[k]}" for k in sorted(params) if k in defaults and params[k] != defaults[k]]
     return label + (f"[{','.join(diff)}]" if diff else "")
 

@@ -66,6 +66,12 @@ def test_fm13_method_labels():
     assert method_label({"method": "dropgaussian", "method_params": {"fm": True, "gamma": 2.0}}) == "dropgaussian+fm"
     assert method_label({"method": "fm", "method_params": {"perturb": "rotation", "reinit": False,
                                                            "gamma": 2.0}}) == "fm[perturb=rotation,reinit=False]"
+    # a parameter that does not apply to the chosen noise is not part of the label
+    assert method_label({"method": "fm", "method_params": {"noise": "anisotropic",
+                                                           "noise_fixed_sigma": 0.0}}) == "fm"
+    assert method_label({"method": "fm", "method_params": {"noise": "iso_fixed",
+                                                           "noise_fixed_sigma": 0.01}}) == \
+        "fm[noise=iso_fixed,noise_fixed_sigma=0.01]"
 
 
 def test_fm13_table_mean_std_over_seeds_and_scenes(runs, tmp_path, capsys):
