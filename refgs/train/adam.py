@@ -36,7 +36,10 @@ class Adam:
     steps  dict name -> int, the parameter's step count
     """
 
-    def __init__(self, params: dict, betas=ADAM_BETAS, eps: float = ADAM_EPS):
+    def __init__(self, params: dict, betas=ADAM_BETAS, eps: float = ADAM_EPS, kernel=None):
+        #: optional compiled update (refgs.fast.adam.adam_update: the same arithmetic in one
+        #: pass, bit-identical); it returns False for shapes it does not take
+        self.kernel = kernel
         self.betas = (float(betas[0]), float(betas[1]))
         self.eps = float(eps)
         self.m = {k: np.zeros_like(p) for k, p in params.items()}
@@ -65,13 +68,17 @@ class Adam:
             m, v = self.m[name], self.v[name]
             s = self.steps[name] + 1
             self.steps[name] = s
+            keep = None if frozen_rows is None else frozen_rows.get(name)
+            if self.kernel is not None and self.kernel(p, g, m, v, lrs[name], keep, s,
+                                                       self.betas, self.eps):
+                continue
             m_new = m + (1.0 - b1) * (g - m)
             v_new = b2 * v + (1.0 - b2) * g * g
             step_size = np.asarray(lrs[name], dtype=np.float64) / (1.0 - b1 ** s)
             denom = np.sqrt(v_new) / np.sqrt(1.0 - b2 ** s) + self.eps
             p_new = p - (step_size * (m_new / denom)).astype(p.dtype)
-            if frozen_rows is not None and name in frozen_rows:
-                keep = np.asarray(frozen_rows[name], bool)
+            if keep is not None:
+                keep = np.asarray(keep, bool)
                 if keep.ndim == 1:
                     keep = keep.reshape((-1,) + (1,) * (p.ndim - 1))
                 m_new = np.where(keep, m, m_new)

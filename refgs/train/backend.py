@@ -7,7 +7,8 @@ A backend has ``name`` and two methods with the signatures of ``refgs.render`` a
     render_backward(out, v_image, v_alpha=None, v_depth=None) -> Gradients
 
 and optionally ``ssim_and_grad(img, gt)`` (the signature of ``refgs.metrics.ssim.ssim_and_grad``)
-used by the loss in place of the reference's.
+used by the loss in place of the reference's, and ``adam_update(p, g, m, v, lr, keep, step, betas,
+eps) -> bool`` used by ``refgs.train.adam.Adam`` for one parameter's update (False: not taken).
 
 "reference" is the numpy specification itself; "fast" is refgs.fast (numba).  Another backend
 registers itself with ``register_backend`` and is picked with ``--backend NAME`` without touching
@@ -57,6 +58,13 @@ class FastBackend:
         refgs.metrics.ssim.ssim_and_grad to ~1e-15 relative)."""
         from ..fast.ssim import ssim_and_grad
         return ssim_and_grad(img, gt)
+
+    @staticmethod
+    def adam_update(p, g, m, v, lr, keep, step, betas, eps) -> bool:
+        """Adam's update of one parameter, compiled (refgs.fast.adam; bit-identical to the
+        numpy expressions of refgs.train.adam.Adam.step, which it replaces when it returns True)."""
+        from ..fast.adam import adam_update
+        return adam_update(p, g, m, v, lr, keep, step, betas, eps)
 
 
 _REGISTRY: dict[str, Callable[[], object]] = {"reference": ReferenceBackend, "fast": FastBackend}

@@ -220,7 +220,7 @@ class Trainer:
         self.extent = float(extent)
         self.backend = backend
         self.method = method if method is not None else get_method(cfg.method, cfg.method_params)
-        self.adam = Adam(self.params)
+        self.adam = Adam(self.params, kernel=getattr(self.backend, "adam_update", None))
         self.stats = DensifyStats(len(self.params["means"]))
         self.t = 0
         seeds = np.random.SeedSequence(int(cfg.seed)).spawn(len(RNG_STREAMS))
@@ -356,7 +356,7 @@ class Trainer:
         from .checkpoint import rng_from_state
         dt = DTYPES[self.cfg.dtype]
         self.params = {k: np.array(arrays[f"param/{k}"], dtype=dt) for k in PARAM_NAMES}
-        self.adam = Adam(self.params)
+        self.adam = Adam(self.params, kernel=getattr(self.backend, "adam_update", None))
         self.adam.load_state_arrays(arrays)
         self.stats.load_state_arrays(arrays)
         for k in self.history:

@@ -1,0 +1,81 @@
+"""Adam's update of one parameter array in one compiled pass (TRN-02; the fast path of issue 7).
+
+``refgs.train.adam.Adam.step`` is the readable spec: it builds m', v', the step and the new
+parameter as whole-array numpy expressions (six temporaries of the parameter's size, ~8 % of a
+fern iteration at 50k Gaussians).  :func:`adam_update` does the same arithmetic element by
+element, in place, with the same operations in the same order and the same precisions -- for
+float32 parameters numpy (NEP 50) computes m' and v' in float32 and the step in float64, and so
+does this kernel -- so its result is bit-identical to ``Adam.step`` (tests/test_fast_adam.py).
+No fast-math: LLVM may not fuse a multiply and an add into an FMA, which would change roundings.
+
+It handles the shapes training uses (a learning rate that is a scalar or constant along rows,
+frozen rows given per row or per row and column) and returns False for anything else, in which
+case ``Adam.step`` falls back to its numpy expressions.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _update(p, g, m, v, lr, keep, c1, b2, c2, bc1, sbc2, eps, tmp):
+    """p, g, m, v (N, C) contiguous, one dtype; lr (C,) float64; keep (N, C) bool or (0, 0);
+    tmp a 1-element array of the parameter's dtype (storing the float64 step there rounds it
+    to that dtype first, as numpy's ``.astype(p.dtype)``).
+
+    c1 = 1 - b1, b2, c2 = 1 - b2 in the parameter's dtype; bc1 = 1 - b1^s, sbc2 =
+    sqrt(1 - b2^s), eps float64 -- the scalars of Adam.step, with the types numpy gives them.
+    """
+    n, cols = p.shape
+    has_keep = keep.shape[0] > 0
+    for i in range(n):
+        for j in range(cols):
+            if has_keep and keep[i, j]:
+                continue
+            mi = m[i, j]
+            gi = g[i, j]
+            mn = mi + c1 * (gi - mi)
+            vn = b2 * v[i, j] + c2 * gi * gi
+            denom = np.float64(np.sqrt(vn)) / sbc2 + eps
+            step = (lr[j] / bc1) * (np.float64(mn) / denom)
+            tmp[0] = step
+            p[i, j] = p[i, j] - tmp[0]
+            m[i, j] = mn
+            v[i, j] = vn
+
+
+def adam_update(p, g, m, v, lr, keep, step: int, betas, eps: float) -> bool:
+    """Adam.step's update of one parameter in place; False (nothing changed) if the shapes are
+    not ones the kernel takes.  ``keep``: None, or a bool array broadcasting against ``p``
+    whose True entries keep parameter and moments unchanged."""
+    if p.dtype not in (np.float32, np.float64) or p.ndim == 0 or p.shape[0] == 0:
+        return False
+    if not all(a.flags.c_contiguous and a.dtype == p.dtype and a.shape == p.shape
+               for a in (g, m, v)) or not p.flags.c_contiguous:
+        return False
+    lr = np.asarray(lr, np.float64)
+    if lr.ndim > p.ndim or (lr.ndim == p.ndim and lr.shape[0] != 1):
+        return False                                   # a learning rate that varies by row
+    n = p.shape[0]
+    cols = p.size // n
+    try:
+        lr_cols = np.ascontiguousarray(np.broadcast_to(lr, (1,) + p.shape[1:])).reshape(cols)
+        if keep is None:
+            keep2 = np.zeros((0, 0), np.bool_)
+        else:
+            keep = np.asarray(keep, bool)
+            if keep.ndim == 1:
+                keep = keep.reshape((-1,) + (1,) * (p.ndim - 1))
+            keep2 = np.ascontiguousarray(np.broadcast_to(keep, p.shape)).reshape(n, cols)
+    except ValueError:
+        return False
+    b1, b2 = float(betas[0]), float(betas[1])
+    dt = p.dtype.type
+    _update(p.reshape(n, cols), g.reshape(n, cols), m.reshape(n, cols), v.reshape(n, cols),
+            lr_cols, keep2, dt(1.0 - b1), dt(b2), dt(1.0 - b2), 1.0 - b1 ** step,
+            float(np.sqrt(1.0 - b2 ** step)), float(eps), np.zeros(1, p.dtype))
+    return True
+
+
+__all__ = ["adam_update"]
