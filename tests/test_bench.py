@@ -36,6 +36,27 @@ def test_bench_small_scenes(tmp_path, capsys):
     assert (out / "pareto.png").stat().st_size > 0 and (out / "scaling.png").stat().st_size > 0
 
 
+def test_bench_flags_ties_without_fast64(tmp_path):
+    """The near-tie flags of the float32 rows do not depend on fast64 being benchmarked: with
+    ref64 + fast32 only they are the same as with fast64 beside them (a float64 refgs.fast
+    render is made for them, untimed)."""
+    pytest.importorskip("numba")
+    from types import SimpleNamespace
+
+    from refgs import bench
+
+    docs = []
+    for backends in (["ref64", "fast64", "fast32"], ["ref64", "fast32"]):
+        args = SimpleNamespace(n=[2400], size=["48x32"], backends=backends, fern_run=None,
+                               repeats=1, profile="inria", out=str(tmp_path / str(len(backends))),
+                               no_plots=True)
+        docs.append(bench.run(args, progress=False)["results"][0]["backends"]["fast32"])
+    with_fast64, without = docs
+    assert without["tie_pixels"] == with_fast64["tie_pixels"] > 0
+    assert without["image_max_abs"] == with_fast64["image_max_abs"]
+    assert without["tie_pixels_differing"] == with_fast64["tie_pixels_differing"]
+
+
 def test_bench_limits_and_fast64_as_proxy_reference(tmp_path):
     """Above LIMITS the reference is not run; errors are then taken against fast float64."""
     pytest.importorskip("numba")
