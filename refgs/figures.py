@@ -22,7 +22,6 @@ Nothing is trained or perturbed here, so the command takes seconds, not hours.
 """
 from __future__ import annotations
 
-import json
 import re
 from pathlib import Path
 
@@ -39,28 +38,19 @@ TRAIN_PSNR_WINDOW = 100
 DEFAULT_OUT = "figures"
 
 
-def _read_json(path: Path) -> dict:
-    if not path.is_file():
-        raise ConfigError(f"{path}: not found (is {path.parent} a finished refgs run? finish it "
-                          f"with refgs train --resume {path.parent})")
-    try:
-        return json.loads(path.read_text())
-    except ValueError as exc:
-        raise ConfigError(f"{path}: not valid JSON ({exc})") from None
-
-
 def _safe(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.+-]+", "_", name)
 
 
 def load_figure_run(run_dir: str | Path) -> dict:
     """config, metrics, history and label of a finished run; ConfigError naming the file."""
-    from .tables import method_label
+    from .cli import CONFIG_FILE, HISTORY_FILE, METRICS_FILE
+    from .tables import method_label, read_run_json
 
     run_dir = Path(run_dir).absolute()
-    config = _read_json(run_dir / "config.json")
-    metrics = _read_json(run_dir / "metrics.json")
-    history = _read_json(run_dir / "history.json")
+    config = read_run_json(run_dir / CONFIG_FILE)
+    metrics = read_run_json(run_dir / METRICS_FILE)
+    history = read_run_json(run_dir / HISTORY_FILE)
     s = config.get("settings", {})
     label = f"{method_label(s)} s{s.get('seed')}"
     return {"dir": run_dir, "name": run_dir.name, "config": config, "settings": s,
@@ -80,24 +70,21 @@ def reinit_iterations(settings: dict) -> list[int]:
     return [t for t in range(1, total + 1) if is_reinit_iteration(t, total, interval)]
 
 
-_VIEWS: dict = {}
-
-
-def _pairs(run: dict):
+def _pairs(run: dict, views_cache: dict):
     """[(view name, render (H, W, 3), ground truth (H, W, 3))] of a run's test views."""
     from PIL import Image
 
-    from .cli import _restore, load_views
+    from .cli import RENDER_DIR, _restore, load_views
     from .train.trainer import TrainConfig
 
     cfg = TrainConfig.from_dict(run["settings"])
     key = (cfg.scene, cfg.images, cfg.resolution, cfg.views, cfg.holdout, cfg.dtype)
-    if key not in _VIEWS:                         # runs of one scene share its ground truth
-        _VIEWS[key] = load_views(cfg)[4]
-    test_views = _VIEWS[key]
+    if key not in views_cache:                    # runs of one scene share its ground truth
+        views_cache[key] = load_views(cfg)[4]
+    test_views = views_cache[key]
     out, trainer = [], None
     for v in test_views:
-        png = run["dir"] / "renders" / "test" / (Path(v.name).stem + ".png")
+        png = run["dir"] / RENDER_DIR / "test" / (Path(v.name).stem + ".png")
         if png.is_file():
             img = np.asarray(Image.open(png).convert("RGB"), np.float64) / 255.0
         else:
@@ -120,12 +107,13 @@ def _save(fig, path: Path) -> None:
     plt.close(fig)
 
 
-def plot_renders(run: dict, path: Path) -> None:
-    """Render | ground truth | |error| for each test view of one run."""
+def plot_renders(run: dict, path: Path, views_cache: dict | None = None) -> None:
+    """Render | ground truth | |error| for each test view of one run (``views_cache``: test views
+    already loaded, keyed by scene settings, shared between the runs of one call)."""
     import matplotlib.pyplot as plt
     from .metrics.psnr import psnr
 
-    pairs = _pairs(run)
+    pairs = _pairs(run, {} if views_cache is None else views_cache)
     if not pairs:
         raise ConfigError(f"{run['dir']}: the run has no test views")
     h, w = pairs[0][1].shape[:2]
@@ -197,11 +185,13 @@ def plot_gaussians(runs: list, path: Path) -> None:
 
 def load_flatness(paths) -> dict:
     """{label: curve} from flatness.json files or the folders that hold them."""
+    from .tables import read_run_json
+
     curves = {}
     for p in paths:
         p = Path(p)
         f = p / "flatness.json" if p.is_dir() else p
-        data = _read_json(f)
+        data = read_run_json(f)
         if "runs" not in data:
             raise ConfigError(f"{f}: expected the output of refgs flatness (a 'runs' entry)")
         for label, c in data["runs"].items():
@@ -221,11 +211,11 @@ def make_figures(run_dirs, flatness=(), out: str | Path = DEFAULT_OUT) -> list[P
     out.mkdir(parents=True, exist_ok=True)
     import matplotlib
     matplotlib.use("Agg")
-    _VIEWS.clear()
+    views_cache: dict = {}
     written, index = [], ["# refgs figures", "", "Made by `refgs figures` (refgs/figures.py).", ""]
     for run in runs:
         path = out / f"renders_{_safe(run['name'])}.png"
-        plot_renders(run, path)
+        plot_renders(run, path, views_cache)
         written.append(path)
         index.append(f"- `{path.name}`: test renders | ground truth | error of {run['dir']} "
                      f"({run['label']}, PSNR {run['metrics'].get('psnr', float('nan')):.2f})")

@@ -45,22 +45,25 @@ def method_label(settings: dict) -> str:
     return label + (f"[{','.join(diff)}]" if diff else "")
 
 
+def read_run_json(path: Path) -> dict:
+    """One JSON file of a run directory; ConfigError naming the file if missing or invalid."""
+    if not path.is_file():
+        raise ConfigError(f"{path}: not found (is {path.parent} a finished refgs run? "
+                          f"finish it with refgs train --resume {path.parent})")
+    try:
+        return json.loads(path.read_text())
+    except ValueError as exc:
+        raise ConfigError(f"{path}: not valid JSON ({exc})") from None
+
+
 def load_run(run_dir: str | Path) -> dict:
     """scene, views, label, seed and metrics of a finished run; ConfigError naming the file."""
     run_dir = Path(run_dir)
-    out = {}
-    for name in ("config.json", "metrics.json"):
-        path = run_dir / name
-        if not path.is_file():
-            raise ConfigError(f"{path}: not found (is {run_dir} a finished refgs run? "
-                              f"finish it with refgs train --resume {run_dir})")
-        try:
-            out[name] = json.loads(path.read_text())
-        except ValueError as exc:
-            raise ConfigError(f"{path}: not valid JSON ({exc})") from None
-    s = out["config.json"].get("settings", {})
+    config = read_run_json(run_dir / "config.json")
+    metrics = read_run_json(run_dir / "metrics.json")
+    s = config.get("settings", {})
     return {"run": str(run_dir), "scene": Path(s.get("scene", "?")).name, "views": s.get("views"),
-            "label": method_label(s), "seed": s.get("seed"), "metrics": out["metrics.json"]}
+            "label": method_label(s), "seed": s.get("seed"), "metrics": metrics}
 
 
 def _mean_std(values) -> tuple[float, float]:
