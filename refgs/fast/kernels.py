@@ -13,12 +13,16 @@ loop of the spec instead of the reference's batched cumprod:
   n_contrib (1-based list position of the last blended Gaussian).  The loops run per pixel row
   with the list slot outside and the row's pixels inside (each pixel keeps its own T, colour,
   depth, done flag), which is the per-pixel front-to-back order of the spec for every pixel.
-* :func:`composite_backward` -- over a range of tiles; per pixel row the forward is *replayed* over
-  list positions 1..n_contrib to recover T_i and alpha_i of every blended fragment (the same
-  products in the same order as the forward, so T_i is bit-identical to the forward's, unlike the
-  original's division T_i = T_{i+1} / (1 - alpha_i)), then each pixel's blended fragments are
-  walked back to front with the suffix sum of RAS-07.  Each tile sums its pixels' contributions
-  per list slot (pixel order fixed) and writes them to a buffer row per intersection;
+  The row's 16 pixels are 16 *lanes* computed without branches (every test a mask, every update
+  a select), so LLVM turns the lane loop into SIMD code; exp is refgs.fast.fexp.fast_exp
+  (within 1 ulp of exp; ``math.exp`` is a scalar library call that stops vectorisation).
+* :func:`composite_backward` -- over a range of tiles; each pixel's blended fragments are walked
+  back to front from list position n_contrib, T_i recovered from T_final by division as the
+  original does (T_i = T_{i+1} * (1 / (1 - alpha_i)); docs/fast.md, "T recovery"), and
+  the suffix sum of RAS-07 (16 masked lanes, as in the forward).  Each
+  tile sums its pixels' contributions per list slot in a fixed order -- per lane pair (c, c + 8)
+  over the rows, then the 8 pair sums in lane order -- and writes them to a buffer row per
+  intersection;
   :func:`reduce_by_gaussian` then adds the rows into per-Gaussian gradients sequentially in
   intersection order.  No atomics, no races: the result is bit-identical for any thread count and
   any split of the tiles into work items.
@@ -42,6 +46,7 @@ import numpy as np
 from numba import njit
 
 from ..constants import ALPHA_MIN, TILE_SIZE
+from .fexp import fast_exp
 
 #: extra width of the screen in units of the quadratic form (= 2 x log units; our choice: float32
 #: rounding of o*exp(power) is ~1e-7 relative, far below exp(-SCREEN_MARGIN / 2) - 1).
@@ -61,6 +66,14 @@ N_RASTER_CONSTANTS = 6
 #: columns of the per-intersection / per-Gaussian gradient buffer
 G_MX, G_MY, G_A, G_B, G_C, G_O, G_R, G_G, G_BL, G_Z = range(10)
 N_GRAD_COLUMNS = 10
+#: lane offsets of the forward's per-row state array (T, colour r, g, b, depth, done flag)
+_S_T, _S_R, _S_G, _S_B, _S_Z, _S_DONE = (k * TILE_SIZE for k in range(6))
+_N_STATE = 6
+#: lane offsets of the backward's per-row state array
+_B_T, _B_SUF, _B_TAIL, _B_VR, _B_VG, _B_VB, _B_VZ = (k * TILE_SIZE for k in range(7))
+_N_BSTATE = 7
+_HALF = TILE_SIZE // 2
+_NT_HALF = N_GRAD_COLUMNS * _HALF
 
 
 @njit(cache=True, error_model="numpy")
@@ -238,10 +251,10 @@ def composite_forward(lo, hi, gauss, offsets, means2d, conics, opac, colors, dep
     dt = means2d.dtype
     Lm = _max_len(offsets, lo, hi)
     tab = np.empty((Lm, 10), dt)
-    T = np.empty(TILE_SIZE, dt)
-    acc = np.empty((TILE_SIZE, 4), dt)          # colour r, g, b and depth per pixel of the row
+    # per pixel of the row: T, colour r, g, b, depth, done (1 / 0) at lane offsets _S_* (one
+    # array, fixed offsets, so that LLVM can vectorise the lane loop)
+    st = np.empty(_N_STATE * TILE_SIZE, dt)
     last = np.empty(TILE_SIZE, np.int32)
-    done = np.empty(TILE_SIZE, np.bool_)
     for tile in range(lo, hi):
         start = offsets[tile]
         L = offsets[tile + 1] - start
@@ -258,50 +271,58 @@ def composite_forward(lo, hi, gauss, offsets, means2d, conics, opac, colors, dep
             if i >= H:
                 break
             py = ys[r]
-            T[:] = one
-            acc[:, :] = zero
-            last[:] = 0
-            done[:] = False
-            n_done = 0
+            for c in range(TILE_SIZE):
+                st[_S_T + c] = one
+                st[_S_R + c] = zero
+                st[_S_G + c] = zero
+                st[_S_B + c] = zero
+                st[_S_Z + c] = zero
+                st[_S_DONE + c] = one if c >= ncols else zero   # columns past the image edge
+                last[c] = 0
+            n_done = TILE_SIZE - ncols
             for k in range(cnt[r]):
                 s = rs[r, k]
                 mx, A, B, o = tab[s, 0], tab[s, 2], tab[s, 3], tab[s, 5]
                 dy = tab[s, 1] - py
                 Cdy2 = tab[s, 4] * dy * dy
                 cr, cg, cb, z = tab[s, 6], tab[s, 7], tab[s, 8], tab[s, 9]
-                for c in range(col_lo[r, k], min(col_hi[r, k] + 1, ncols)):
-                    if done[c]:
-                        continue
+                c_lo, c_hi = np.int64(col_lo[r, k]), np.int64(col_hi[r, k])
+                slot = np.int32(s + 1)
+                stops = 0
+                # all 16 lanes at once, masked (vectorised); a lane does what the per-pixel loop
+                # of the spec does: skip outside the chord, when done, power > 0 (RAS-03) or
+                # alpha < 1/255 (RAS-04); stop without blending (RAS-05); else blend
+                for c in range(TILE_SIZE):
                     power = _power(A, B, Cdy2, mx - xs[c], dy, neg_half)
-                    if power > zero:                     # RAS-03
-                        continue
-                    a = min(cap, o * math.exp(power))    # RAS-04
-                    if a < amin:
-                        continue
-                    Tc = T[c]
+                    a = min(cap, o * fast_exp(power))
+                    Tc = st[_S_T + c]
                     test_T = Tc * (one - a)
-                    if (test_T <= t_min) if stop_inclusive else (test_T < t_min):
-                        done[c] = True                   # RAS-05: this fragment is not blended
-                        n_done += 1
-                        continue
+                    live = ((c >= c_lo) & (c <= c_hi) & (st[_S_DONE + c] == zero)
+                            & (not (power > zero)) & (not (a < amin)))
+                    stop = live & ((test_T <= t_min) if stop_inclusive else (test_T < t_min))
+                    blend = live & (not stop)
+                    stops += stop
                     w = a * Tc
-                    acc[c, 0] += cr * w
-                    acc[c, 1] += cg * w
-                    acc[c, 2] += cb * w
-                    acc[c, 3] += z * w
-                    T[c] = test_T
-                    last[c] = s + 1
-                if n_done == ncols:
+                    st[_S_DONE + c] = one if stop else st[_S_DONE + c]
+                    st[_S_R + c] = st[_S_R + c] + cr * w if blend else st[_S_R + c]
+                    st[_S_G + c] = st[_S_G + c] + cg * w if blend else st[_S_G + c]
+                    st[_S_B + c] = st[_S_B + c] + cb * w if blend else st[_S_B + c]
+                    st[_S_Z + c] = st[_S_Z + c] + z * w if blend else st[_S_Z + c]
+                    st[_S_T + c] = test_T if blend else Tc
+                    last[c] = slot if blend else last[c]
+                n_done += stops
+                if n_done == TILE_SIZE:
                     break
             for c in range(ncols):
                 j = tx * TILE_SIZE + c
-                image[i, j, 0] = acc[c, 0] + T[c] * bg[0]
-                image[i, j, 1] = acc[c, 1] + T[c] * bg[1]
-                image[i, j, 2] = acc[c, 2] + T[c] * bg[2]
-                alpha_img[i, j] = one - T[c]
-                depth_img[i, j] = acc[c, 3]
+                Tc = st[_S_T + c]
+                image[i, j, 0] = st[_S_R + c] + Tc * bg[0]
+                image[i, j, 1] = st[_S_G + c] + Tc * bg[1]
+                image[i, j, 2] = st[_S_B + c] + Tc * bg[2]
+                alpha_img[i, j] = one - Tc
+                depth_img[i, j] = st[_S_Z + c]
                 n_contrib[i, j] = last[c]
-                final_T[i, j] = T[c]
+                final_T[i, j] = Tc
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -336,12 +357,14 @@ def composite_backward(lo, hi, gauss, offsets, means2d, conics, opac, colors, de
     dt = means2d.dtype
     Lm = _max_len(offsets, lo, hi)
     tab = np.empty((Lm, 10), dt)
-    acc = np.empty((Lm, 10), dt)
-    last = np.empty(TILE_SIZE, np.int64)
-    T = np.empty(TILE_SIZE, dt)
-    suffix = np.empty(TILE_SIZE, dt)
-    tail = np.empty(TILE_SIZE, dt)
-    vpix = np.empty((TILE_SIZE, 4), dt)             # v_image r, g, b and v_depth per pixel
+    # per list slot, gradient field and lane pair (c, c + 8): partial sums over the tile's rows,
+    # reduced over the 8 lane pairs in a fixed order when the tile is done
+    acc = np.empty(Lm * _NT_HALF, dt)
+    # per pixel of the row (lane offsets _B_*): T, suffix sum, tail, v_image r, g, b, v_depth
+    st = np.empty(_N_BSTATE * TILE_SIZE, dt)
+    last = np.empty(TILE_SIZE, np.int32)
+    # one list slot's per-lane gradient terms, field-major (G_* x 16)
+    terms = np.empty(N_GRAD_COLUMNS * TILE_SIZE, dt)
     for tile in range(lo, hi):
         start = offsets[tile]
         L = offsets[tile + 1] - start
@@ -351,7 +374,7 @@ def composite_backward(lo, hi, gauss, offsets, means2d, conics, opac, colors, de
         xs = _centres(tx * TILE_SIZE, tab)
         ys = _centres(ty * TILE_SIZE, tab)
         cnt, rs, col_lo, col_hi = _row_tables(tile, start, L, row_cnt, row_slots, row_lo, row_hi)
-        acc[:L, :] = zero
+        acc[:L * _NT_HALF] = zero
         ncols = min(TILE_SIZE, W - tx * TILE_SIZE)
         for r in range(TILE_SIZE):
             i = ty * TILE_SIZE + r
@@ -359,16 +382,21 @@ def composite_backward(lo, hi, gauss, offsets, means2d, conics, opac, colors, de
                 break
             py = ys[r]
             max_last = 0
-            for c in range(ncols):
-                j = tx * TILE_SIZE + c
-                last[c] = n_contrib[i, j]
-                max_last = max(max_last, last[c])
-                T[c] = final_T[i, j]
-                suffix[c] = zero
-                vpix[c, 0], vpix[c, 1], vpix[c, 2] = v_image[i, j, 0], v_image[i, j, 1], v_image[i, j, 2]
-                vpix[c, 3] = v_depth[i, j]
-                tail[c] = final_T[i, j] * (vpix[c, 0] * bg[0] + vpix[c, 1] * bg[1] + vpix[c, 2] * bg[2]
-                                           - v_alpha[i, j])
+            for c in range(TILE_SIZE):
+                if c < ncols:
+                    j = tx * TILE_SIZE + c
+                    last[c] = n_contrib[i, j]
+                    max_last = max(max_last, last[c])
+                    Tf = final_T[i, j]
+                    vr, vg, vb, vz = v_image[i, j, 0], v_image[i, j, 1], v_image[i, j, 2], v_depth[i, j]
+                    va = v_alpha[i, j]
+                else:                                    # past the image edge: no fragments
+                    last[c] = 0
+                    Tf = vr = vg = vb = vz = va = zero
+                st[_B_T + c] = Tf
+                st[_B_SUF + c] = zero
+                st[_B_VR + c], st[_B_VG + c], st[_B_VB + c], st[_B_VZ + c] = vr, vg, vb, vz
+                st[_B_TAIL + c] = Tf * (vr * bg[0] + vg * bg[1] + vb * bg[2] - va)
             for k in range(cnt[r] - 1, -1, -1):           # back to front
                 s = rs[r, k]
                 if s >= max_last:
@@ -377,51 +405,58 @@ def composite_backward(lo, hi, gauss, offsets, means2d, conics, opac, colors, de
                 dy = tab[s, 1] - py
                 Cdy2 = C * dy * dy
                 cr, cg, cb, z = tab[s, 6], tab[s, 7], tab[s, 8], tab[s, 9]
-                g_mx = g_my = g_a = g_b = g_c = g_o = g_r = g_g = g_bl = g_z = zero
-                for c in range(col_lo[r, k], min(col_hi[r, k] + 1, ncols)):
-                    if s >= last[c]:
-                        continue
+                c_lo, c_hi = np.int64(col_lo[r, k]), np.int64(col_hi[r, k])
+                s32 = np.int32(s)
+                # all 16 lanes at once, masked (vectorised); a lane is one pixel's step of the
+                # back-to-front walk: only fragments the forward blended (s < last, inside the
+                # chord, power <= 0, alpha >= 1/255) change T and the suffix sum or contribute
+                for c in range(TILE_SIZE):
                     dx = mx - xs[c]
                     power = _power(A, B, Cdy2, dx, dy, neg_half)
-                    if power > zero:
-                        continue
-                    G = math.exp(power)
+                    G = fast_exp(power)
                     oG = o * G
                     a = min(cap, oG)
-                    if a < amin:
-                        continue
+                    live = ((c >= c_lo) & (c <= c_hi) & (s32 < last[c])
+                            & (not (power > zero)) & (not (a < amin)))
                     inv = one / (one - a)
-                    Ti = T[c] * inv                         # T before this fragment
-                    T[c] = Ti
-                    cv = cr * vpix[c, 0] + cg * vpix[c, 1] + cb * vpix[c, 2] + z * vpix[c, 3]
+                    Ti = st[_B_T + c] * inv                  # T before this fragment
+                    vr, vg, vb, vz = st[_B_VR + c], st[_B_VG + c], st[_B_VB + c], st[_B_VZ + c]
+                    cv = cr * vr + cg * vg + cb * vb + z * vz
                     w = a * Ti
-                    v_a = Ti * cv - (suffix[c] + tail[c]) * inv
-                    suffix[c] += w * cv
-                    v_oG = v_a if (grad_through_cap or oG <= cap) else zero     # RAS-10
+                    suf = st[_B_SUF + c]
+                    v_a = Ti * cv - (suf + st[_B_TAIL + c]) * inv
+                    st[_B_T + c] = Ti if live else st[_B_T + c]
+                    st[_B_SUF + c] = suf + w * cv if live else suf
+                    v_oG = v_a if (live & (grad_through_cap | (oG <= cap))) else zero   # RAS-10
                     v_pow = v_oG * o * G
-                    g_mx += -(A * dx + B * dy) * v_pow
-                    g_my += -(C * dy + B * dx) * v_pow
-                    g_a += neg_half * dx * dx * v_pow
-                    g_b += -dx * dy * v_pow                                   # RAS-08
-                    g_c += neg_half * dy * dy * v_pow
-                    g_o += v_oG * G
-                    g_r += w * vpix[c, 0]
-                    g_g += w * vpix[c, 1]
-                    g_bl += w * vpix[c, 2]
-                    g_z += w * vpix[c, 3]
-                acc[s, G_MX] += g_mx
-                acc[s, G_MY] += g_my
-                acc[s, G_A] += g_a
-                acc[s, G_B] += g_b
-                acc[s, G_C] += g_c
-                acc[s, G_O] += g_o
-                acc[s, G_R] += g_r
-                acc[s, G_G] += g_g
-                acc[s, G_BL] += g_bl
-                acc[s, G_Z] += g_z
-        for s in range(L):
-            for q in range(10):
-                contrib[start + s, q] = acc[s, q]
+                    wl = w if live else zero
+                    g_mx = -(A * dx + B * dy) * v_pow
+                    g_my = -(C * dy + B * dx) * v_pow
+                    g_a = neg_half * dx * dx * v_pow
+                    g_b = -dx * dy * v_pow                                        # RAS-08
+                    g_c = neg_half * dy * dy * v_pow
+                    # selects, not products with 0: a huge conic outside the chord could give inf * 0
+                    terms[G_MX * TILE_SIZE + c] = g_mx if live else zero
+                    terms[G_MY * TILE_SIZE + c] = g_my if live else zero
+                    terms[G_A * TILE_SIZE + c] = g_a if live else zero
+                    terms[G_B * TILE_SIZE + c] = g_b if live else zero
+                    terms[G_C * TILE_SIZE + c] = g_c if live else zero
+                    terms[G_O * TILE_SIZE + c] = v_oG * G
+                    terms[G_R * TILE_SIZE + c] = wl * vr
+                    terms[G_G * TILE_SIZE + c] = wl * vg
+                    terms[G_BL * TILE_SIZE + c] = wl * vb
+                    terms[G_Z * TILE_SIZE + c] = wl * vz
+                base = s * _NT_HALF
+                for f in range(N_GRAD_COLUMNS):
+                    for c in range(_HALF):
+                        acc[base + f * _HALF + c] += terms[f * TILE_SIZE + c] + terms[f * TILE_SIZE + c + _HALF]
+        for s in range(L):                       # the lane pairs in a fixed order, 0..7
+            base = s * _NT_HALF
+            for f in range(N_GRAD_COLUMNS):
+                total = zero
+                for c in range(_HALF):
+                    total += acc[base + f * _HALF + c]
+                contrib[start + s, f] = total
 
 
 @njit(cache=True, error_model="numpy")
