@@ -34,8 +34,10 @@ computed power (SCREEN_ULPS eps |terms|) plus SCREEN_MARGIN; the chord is solved
 padded for its own rounding.  A fragment outside its chord has computed o G < 1/255 by at least a
 factor exp(-SCREEN_MARGIN / 2), so skipping it changes nothing; fragments inside are evaluated
 exactly as the spec says.  Non-positive-definite conics and non-finite values get no screen.
-Each row then walks only its slots (in list order) and, for each, only the pixels of its chord.
-``screen=False`` evaluates every (pixel, slot) pair; the outputs are bit-identical
+The compositing kernels keep, per row, the slots whose chord contains a pixel centre of the row
+(:func:`_row_lists`) and walk only those, in list order, all 16 lanes of the row at once (the
+lanes outside the chord fail the alpha test by the bound above; :func:`_chords` keeps the
+columns too, for refgs.fast.ties).  ``screen=False`` evaluates every (pixel, slot) pair; the outputs are bit-identical
 (tests/test_fast.py checks this).
 """
 from __future__ import annotations
@@ -122,11 +124,10 @@ def _gather(gauss, start, L, means2d, conics, opac, colors, depths, tab):
 
 
 @njit(cache=True, error_model="numpy")
-def _row_tables(tile, start, L, row_cnt, row_slots, row_lo, row_hi):
-    """Views of tile ``tile``'s screen tables: cnt (16,), slots / lo / hi (16, L)."""
+def _row_tables(tile, start, L, row_cnt, row_slots):
+    """Views of tile ``tile``'s row lists: cnt (16,), slots (16, L)."""
     a, b = TILE_SIZE * start, TILE_SIZE * (start + L)
-    return (row_cnt[tile], row_slots[a:b].reshape((TILE_SIZE, L)),
-            row_lo[a:b].reshape((TILE_SIZE, L)), row_hi[a:b].reshape((TILE_SIZE, L)))
+    return row_cnt[tile], row_slots[a:b].reshape((TILE_SIZE, L))
 
 
 @njit(cache=True, error_model="numpy")
@@ -216,6 +217,72 @@ def _chords(tab, L, xs, ys, eps, screen, cnt, rs, lo, hi):
             cnt[r] = k + 1
 
 
+@njit(cache=True, error_model="numpy")
+def _row_lists(tab, L, xs, ys, eps, screen, cnt, rs, keep):
+    """Per pixel row r: the slots whose screen chord (:func:`_chords`, same arithmetic, same
+    decisions) contains a pixel centre of row r, in list order (rs[r, :cnt[r]]).  The columns are
+    not kept: the compositing lanes test alpha >= 1/255 themselves, and outside its chord a
+    fragment fails that test (module docstring, Screen), so only the rows matter.  The chord test
+    runs for all 16 rows at once (vectorised) into the scratch ``keep`` (16,) bool."""
+    T = TILE_SIZE
+    cnt[:] = 0
+    x0 = np.float64(xs[0])
+    x1 = np.float64(xs[T - 1])
+    y0 = np.float64(ys[0])
+    y1 = np.float64(ys[T - 1])
+    top = T - 1.0
+    for s in range(L):
+        mx, my = np.float64(tab[s, 0]), np.float64(tab[s, 1])
+        A, B, C = np.float64(tab[s, 2]), np.float64(tab[s, 3]), np.float64(tab[s, 4])
+        o = np.float64(tab[s, 5])
+        det = A * C - B * B
+        if screen and o == 0.0:
+            continue                                      # alpha = 0 everywhere
+        dxm = max(abs(mx - x0), abs(mx - x1))
+        dym = max(abs(my - y0), abs(my - y1))
+        terms = abs(A) * dxm * dxm + abs(C) * dym * dym + 2.0 * abs(B) * dxm * dym
+        q = 2.0 * math.log(o / _ALPHA_MIN64) + SCREEN_ULPS * eps * terms + SCREEN_MARGIN
+        if not screen or not (A > 0.0 and C > 0.0 and det > 0.0 and math.isfinite(det)
+                              and math.isfinite(q) and math.isfinite(mx) and math.isfinite(my)):
+            for r in range(T):
+                rs[r, cnt[r]] = s
+                cnt[r] += 1
+            continue
+        if not q > 0.0:
+            continue                                      # o G < 1/255 everywhere
+        den = det - _F64_ULPS * (A * C + B * B)
+        r_lo, r_hi = 0, T - 1
+        if den > 0.0:
+            dy_max = math.sqrt(A * q * (1.0 + _F64_ULPS) / den) * (1.0 + _F64_ULPS) + _CHORD_PAD
+            ylo = my - dy_max - y0
+            yhi = my + dy_max - y0
+            if yhi < 0.0 or ylo > top:
+                continue
+            r_lo = 0 if ylo <= 0.0 else int(math.ceil(ylo))
+            r_hi = T - 1 if yhi >= top else int(math.floor(yhi))
+        inv_a = 1.0 / A
+        b_a = B * inv_a
+        a_q = A * q
+        ac_b2 = A * C + B * B
+        for r in range(T):
+            dy = my - np.float64(ys[r])
+            dy2 = dy * dy
+            disc = a_q - det * dy2 + _F64_ULPS * (a_q + ac_b2 * dy2)
+            half = math.sqrt(0.0 if disc < 0.0 else disc) * inv_a
+            centre = mx + b_a * dy
+            pad = _F64_ULPS * (abs(b_a * dy) + half + abs(mx)) + _CHORD_PAD
+            plo = centre - half - pad - x0
+            phi = centre + half + pad - x0
+            p_lo = 0.0 if plo <= 0.0 else plo
+            p_hi = top if phi >= top else phi
+            has_centre = (plo != plo) | (phi != phi) | (math.ceil(p_lo) <= math.floor(p_hi))
+            keep[r] = (r >= r_lo) & (r <= r_hi) & (not (disc < 0.0)) & has_centre
+        for r in range(r_lo, r_hi + 1):
+            if keep[r]:
+                rs[r, cnt[r]] = s
+                cnt[r] += 1
+
+
 @njit(cache=True, inline="always", error_model="numpy")
 def _power(A, B, Cdy2, dx, dy, neg_half):
     """-0.5 (A dx^2 + C dy^2) - B dx dy with d = mean - pixel (RAS-03), C dy^2 precomputed per row
@@ -235,15 +302,15 @@ def _centres(origin, like):
 @njit(cache=True, nogil=True, error_model="numpy")
 def composite_forward(lo, hi, gauss, offsets, means2d, conics, opac, colors, depths, bg, rc, eps,
                       stop_inclusive, screen, gx, image, alpha_img, depth_img, n_contrib, final_T,
-                      row_cnt, row_slots, row_lo, row_hi):
+                      row_cnt, row_slots):
     """Front-to-back compositing (RAS-03..RAS-06) of the pixels of tiles [lo, hi).
 
     gauss/offsets from :func:`build_tile_lists`; per-Gaussian means2d (N,2), conics (N,3),
     opac (N,), colors (N,3), depths (N,); bg (3,), rc the R_* constants, eps the dtype's machine
     epsilon (float64); outputs image (H,W,3), alpha_img / depth_img / final_T (H,W) in D,
     n_contrib (H,W) int32, written for these tiles only.  The screen's row lists are kept for the
-    backward: row_cnt (n_tiles, 16) int64 and, for tile t with list length L, row_slots / row_lo /
-    row_hi (16 P,) hold its (16, L) tables at [16 offsets[t], 16 offsets[t+1]).
+    backward: row_cnt (n_tiles, 16) int64 and, for tile t with list length L, row_slots (16 P,)
+    int32 holds its (16, L) table at [16 offsets[t], 16 offsets[t+1]).
     """
     H, W = alpha_img.shape
     one, zero, t_min = rc[R_ONE], rc[R_ZERO], rc[R_T_MIN]
@@ -255,6 +322,7 @@ def composite_forward(lo, hi, gauss, offsets, means2d, conics, opac, colors, dep
     # array, fixed offsets, so that LLVM can vectorise the lane loop)
     st = np.empty(_N_STATE * TILE_SIZE, dt)
     last = np.empty(TILE_SIZE, np.int32)
+    keep = np.empty(TILE_SIZE, np.bool_)
     for tile in range(lo, hi):
         start = offsets[tile]
         L = offsets[tile + 1] - start
@@ -263,8 +331,8 @@ def composite_forward(lo, hi, gauss, offsets, means2d, conics, opac, colors, dep
         _gather(gauss, start, L, means2d, conics, opac, colors, depths, tab)
         xs = _centres(tx * TILE_SIZE, tab)
         ys = _centres(ty * TILE_SIZE, tab)
-        cnt, rs, col_lo, col_hi = _row_tables(tile, start, L, row_cnt, row_slots, row_lo, row_hi)
-        _chords(tab, L, xs, ys, eps, screen, cnt, rs, col_lo, col_hi)
+        cnt, rs = _row_tables(tile, start, L, row_cnt, row_slots)
+        _row_lists(tab, L, xs, ys, eps, screen, cnt, rs, keep)
         ncols = min(TILE_SIZE, W - tx * TILE_SIZE)
         for r in range(TILE_SIZE):
             i = ty * TILE_SIZE + r
@@ -286,19 +354,18 @@ def composite_forward(lo, hi, gauss, offsets, means2d, conics, opac, colors, dep
                 dy = tab[s, 1] - py
                 Cdy2 = tab[s, 4] * dy * dy
                 cr, cg, cb, z = tab[s, 6], tab[s, 7], tab[s, 8], tab[s, 9]
-                c_lo, c_hi = np.int64(col_lo[r, k]), np.int64(col_hi[r, k])
                 slot = np.int32(s + 1)
                 stops = 0
                 # all 16 lanes at once, masked (vectorised); a lane does what the per-pixel loop
-                # of the spec does: skip outside the chord, when done, power > 0 (RAS-03) or
-                # alpha < 1/255 (RAS-04); stop without blending (RAS-05); else blend
+                # of the spec does: skip when done, power > 0 (RAS-03) or alpha < 1/255
+                # (RAS-04); stop without blending (RAS-05); else blend
                 for c in range(TILE_SIZE):
                     power = _power(A, B, Cdy2, mx - xs[c], dy, neg_half)
                     a = min(cap, o * fast_exp(power))
                     Tc = st[_S_T + c]
                     test_T = Tc * (one - a)
-                    live = ((c >= c_lo) & (c <= c_hi) & (st[_S_DONE + c] == zero)
-                            & (not (power > zero)) & (not (a < amin)))
+                    live = ((st[_S_DONE + c] == zero) & (not (power > zero))
+                            & (not (a < amin)))
                     stop = live & ((test_T <= t_min) if stop_inclusive else (test_T < t_min))
                     blend = live & (not stop)
                     stops += stop
@@ -328,7 +395,7 @@ def composite_forward(lo, hi, gauss, offsets, means2d, conics, opac, colors, dep
 @njit(cache=True, nogil=True, error_model="numpy")
 def composite_backward(lo, hi, gauss, offsets, means2d, conics, opac, colors, depths, bg, rc,
                        grad_through_cap, gx, n_contrib, final_T, v_image, v_alpha, v_depth,
-                       row_cnt, row_slots, row_lo, row_hi, contrib):
+                       row_cnt, row_slots, contrib):
     """Backward of :func:`composite_forward` (RAS-07, RAS-08, RAS-10) for tiles [lo, hi).
 
     For the blended fragments of a pixel (T_i before fragment i, w_i = a_i T_i,
@@ -345,10 +412,10 @@ def composite_backward(lo, hi, gauss, offsets, means2d, conics, opac, colors, de
     computed as T_{i+1} * (1 / (1 - a_i)); the forward's T_{i+1} = T_i (1 - a_i) used the same
     rounded 1 - a_i, so each step adds about three roundings: relative error <~ 3 n eps after n
     fragments -- ~1e-14 in float64, and in float32 ~2e-5 at worst for the ~100 fragments of a
-    saturated pixel, typically far less because the roundings do not all add up).  The row tables are the
-    forward's (row_cnt, row_slots, row_lo, row_hi).
+    saturated pixel, typically far less because the roundings do not all add up).  The row lists are the
+    forward's (row_cnt, row_slots).
     Writes contrib (P, 10): row offsets[t] + s = the sum over tile t's pixels for list slot s
-    (pixel rows in order, the row's pixels left to right), columns G_* (means2d x, y; conic A, B,
+    (in the fixed lane-pair order of the module docstring), columns G_* (means2d x, y; conic A, B,
     C; opacity; colour r, g, b; depth).
     """
     H, W = final_T.shape
@@ -373,7 +440,7 @@ def composite_backward(lo, hi, gauss, offsets, means2d, conics, opac, colors, de
         _gather(gauss, start, L, means2d, conics, opac, colors, depths, tab)
         xs = _centres(tx * TILE_SIZE, tab)
         ys = _centres(ty * TILE_SIZE, tab)
-        cnt, rs, col_lo, col_hi = _row_tables(tile, start, L, row_cnt, row_slots, row_lo, row_hi)
+        cnt, rs = _row_tables(tile, start, L, row_cnt, row_slots)
         acc[:L * _NT_HALF] = zero
         ncols = min(TILE_SIZE, W - tx * TILE_SIZE)
         for r in range(TILE_SIZE):
@@ -405,19 +472,17 @@ def composite_backward(lo, hi, gauss, offsets, means2d, conics, opac, colors, de
                 dy = tab[s, 1] - py
                 Cdy2 = C * dy * dy
                 cr, cg, cb, z = tab[s, 6], tab[s, 7], tab[s, 8], tab[s, 9]
-                c_lo, c_hi = np.int64(col_lo[r, k]), np.int64(col_hi[r, k])
                 s32 = np.int32(s)
                 # all 16 lanes at once, masked (vectorised); a lane is one pixel's step of the
-                # back-to-front walk: only fragments the forward blended (s < last, inside the
-                # chord, power <= 0, alpha >= 1/255) change T and the suffix sum or contribute
+                # back-to-front walk: only fragments the forward blended (s < last, power <= 0,
+                # alpha >= 1/255) change T and the suffix sum or contribute
                 for c in range(TILE_SIZE):
                     dx = mx - xs[c]
                     power = _power(A, B, Cdy2, dx, dy, neg_half)
                     G = fast_exp(power)
                     oG = o * G
                     a = min(cap, oG)
-                    live = ((c >= c_lo) & (c <= c_hi) & (s32 < last[c])
-                            & (not (power > zero)) & (not (a < amin)))
+                    live = (s32 < last[c]) & (not (power > zero)) & (not (a < amin))
                     inv = one / (one - a)
                     Ti = st[_B_T + c] * inv                  # T before this fragment
                     vr, vg, vb, vz = st[_B_VR + c], st[_B_VG + c], st[_B_VB + c], st[_B_VZ + c]

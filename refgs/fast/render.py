@@ -125,13 +125,12 @@ def render(gaussians, camera, config: RenderConfig | None = None, *,
     eps = float(np.finfo(dt).eps)
     row_cnt = np.zeros((gx * gy, TILE_SIZE), np.int64)
     row_slots = np.empty(TILE_SIZE * gauss.size, np.int32)
-    row_lo, row_hi = np.empty(TILE_SIZE * gauss.size, np.int8), np.empty(TILE_SIZE * gauss.size, np.int8)
     parallel_for(rk.composite_forward, gx * gy, gauss, offsets, means2d, conics, opac, colors, depths,
                  bg, rc, eps, bool(profile.stop_inclusive), bool(screen), gx, image, alpha, depth,
-                 n_contrib, final_T, row_cnt, row_slots, row_lo, row_hi)
+                 n_contrib, final_T, row_cnt, row_slots)
     cache = {"tag": CACHE_TAG, "profile": profile, "sh_degree": deg,
              "lists": {"gauss": gauss, "offsets": offsets}, "tile_rect": rect,
-             "rows": (row_cnt, row_slots, row_lo, row_hi),
+             "rows": (row_cnt, row_slots),
              "arrays": (means, log_scales, quats, logits, oscale, sh, w2c, campos),
              "cst": cst, "flags": flags, "rc": rc, "bg": bg, "screen": bool(screen),
              "comp": comp, "o_sig": o_sig, "clamped": clamped, "scale": oscale}
