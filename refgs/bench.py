@@ -79,6 +79,9 @@ class BenchBackend:
     dtype: str
     render: Callable
     backward: Callable
+    #: which near-tie bands apply to a float32 backend (a key of TIE_BANDS): "float32" for
+    #: float32 throughout, "float32-compositing" for float32 compositing of float64 geometry
+    bands: str = "float32"
 
 
 def _make_backend(name: str, profile: str) -> BenchBackend:
@@ -92,7 +95,8 @@ def _make_backend(name: str, profile: str) -> BenchBackend:
             from . import fast
         except ImportError as e:
             raise Unavailable(str(e)) from None
-        return BenchBackend(name, f"refgs.fast {dt}", dt, fast.render, fast.render_backward)
+        return BenchBackend(name, f"refgs.fast {dt}", dt, fast.render, fast.render_backward,
+                            "float32-compositing")
     if name in ("torch64", "torch32"):
         try:
             from oracle.adapters.torch_backend import TorchBackend
@@ -183,6 +187,12 @@ def _grad_errors(got, ref, rows=None) -> dict:
     return {"grad_rel_l2": worst_l2, "grad_worst_field": worst_field, "grad_worst_element": worst_el}
 
 
+def tie_bands(key: str):
+    """The refgs.fast.ties bands of a BenchBackend.bands key."""
+    from .fast.ties import FLOAT32_BANDS, GEOMETRY64_BANDS
+    return {"float32": FLOAT32_BANDS, "float32-compositing": GEOMETRY64_BANDS}[key]
+
+
 def _fast64_render(g64, cam, cfg):
     """A float64 refgs.fast render for the tie flags, or None without numba."""
     try:
@@ -217,14 +227,15 @@ def bench_scene(label, n, size, g64, cam, backends, repeats: int, profile: str) 
             outs[b.name] = (out, grads)
     ref_name = "ref64" if "ref64" in outs else ("fast64" if "fast64" in outs else None)
     res["error_reference"] = ref_name
-    ties = None
-    if any(b.dtype == "float32" for b in active):
+    ties = {}                                  # bands key -> find_ties result
+    keys = sorted({b.bands for b in active if b.dtype == "float32"})
+    if keys:
         # the near-tie flags come from a float64 refgs.fast render (its cache holds what
         # find_ties reads); made here, untimed, when fast64 is not among the backends
         tie_src = outs["fast64"][0] if "fast64" in outs else _fast64_render(g64, cam, cfg)
         if tie_src is not None:
             from .fast.ties import find_ties
-            ties = find_ties(tie_src)
+            ties = {k: find_ties(tie_src, tie_bands(k)) for k in keys}
     if "fast64" in outs:
         res["pixel_gaussian_pairs"] = 256 * int(outs["fast64"][0].cache["lists"]["gauss"].size)
     elif "ref64" in outs:
@@ -234,11 +245,9 @@ def bench_scene(label, n, size, g64, cam, backends, repeats: int, profile: str) 
         ref_out, ref_g = outs[ref_name]
         ref_be = next(b for b in active if b.name == ref_name)
         refs["float64"] = (ref_out, ref_g, None)
-        if ties is not None:
-            v_masked = np.where(ties["backward"][..., None], 0.0, v)
-            refs["float32"] = (ref_out, ref_be.backward(ref_out, v_masked), ~ties["kink_gaussians"])
-        else:
-            refs["float32"] = refs["float64"]
+        for k, tk in ties.items():
+            v_masked = np.where(tk["backward"][..., None], 0.0, v)
+            refs[k] = (ref_out, ref_be.backward(ref_out, v_masked), ~tk["kink_gaussians"])
     for b in active:
         t = times[b.name]
         fwd, bwd = statistics.median(t["fwd"]), statistics.median(t["bwd"])
@@ -246,16 +255,18 @@ def bench_scene(label, n, size, g64, cam, backends, repeats: int, profile: str) 
                "forward_backward_s": statistics.median(np.add(t["fwd"], t["bwd"])),
                "first_call": first[b.name], "all_s": t}
         if ref_name is not None and b.name != ref_name:
-            ref_out, ref_g, rows = refs[b.dtype]
+            tk = ties.get(b.bands) if b.dtype == "float32" else None
+            ref_out, ref_g, rows = refs[b.bands] if tk is not None else refs["float64"]
             out, grads = outs[b.name]
             err = np.max(np.abs(np.asarray(out.image, np.float64) - ref_out.image), axis=-1)
-            if b.dtype == "float32" and ties is not None:
-                mask = ties["forward"]
+            if tk is not None:
+                row["tie_bands"] = b.bands
+                mask = tk["forward"]
                 row["tie_pixels"] = int(mask.sum())
                 row["image_max_abs"] = float(np.max(np.where(mask, 0.0, err), initial=0.0))
                 row["image_max_abs_at_ties"] = float(np.max(np.where(mask, err, 0.0), initial=0.0))
                 row["tie_pixels_differing"] = int(np.sum(mask & (err > TARGET_IMAGE_ERR)))
-                grads = b.backward(out, np.where(ties["backward"][..., None], 0.0, v).astype(b.dtype))
+                grads = b.backward(out, np.where(tk["backward"][..., None], 0.0, v).astype(b.dtype))
             else:
                 # float64, or float32 without numba: no flags (None = not known, not "none")
                 row["tie_pixels"] = 0 if b.dtype == "float64" else None

@@ -31,7 +31,7 @@ numba = pytest.importorskip("numba")
 import refgs  # noqa: E402
 import refgs.fast as fast  # noqa: E402
 from refgs import Camera, Gaussians, RenderConfig  # noqa: E402
-from refgs.fast.ties import find_ties  # noqa: E402
+from refgs.fast.ties import FLOAT32_BANDS, GEOMETRY64_BANDS, find_ties  # noqa: E402
 from refgs.synthetic import benchmark_scene  # noqa: E402
 
 from strategies import (make_camera, max_examples, place_gaussians,  # noqa: E402
@@ -261,15 +261,17 @@ def test_screen_is_exact():
 # float32 against the float64 reference
 # ---------------------------------------------------------------------------------------------
 
-def check_f32(g64, cam, cfg, seed=0) -> dict:
-    """fast float32 vs reference float64 outside near-ties (module docstring); returns counts."""
+def check_f32(g64, cam, cfg, seed=0, geometry="float64") -> dict:
+    """fast float32 vs reference float64 outside near-ties (module docstring); returns counts.
+    ``geometry``: refgs.fast.render's per-Gaussian precision; "float64" is checked with the
+    ties of GEOMETRY64_BANDS (no per-Gaussian bands), "input" with FLOAT32_BANDS."""
     g32 = g64.astype(np.float32)
     g64r = g32.astype(np.float64)                         # the same numbers in float64
     ref = refgs.render(g64r, cam, cfg)
     o64 = fast.render(g64r, cam, cfg)
-    out = fast.render(g32, cam, cfg)
+    out = fast.render(g32, cam, cfg, geometry=geometry)
     assert out.image.dtype == np.float32
-    ties = find_ties(o64)
+    ties = find_ties(o64, GEOMETRY64_BANDS if geometry == "float64" else FLOAT32_BANDS)
     fwd, bwd = ties["forward"], ties["backward"]
     assert fwd.mean() <= F32_MAX_TIE_FRACTION, ties["counts"]
     err = np.max(np.abs(out.image - ref.image), axis=-1)
@@ -296,15 +298,41 @@ def check_f32(g64, cam, cfg, seed=0) -> dict:
 @given(scene=scenes(n=(1, 8), width=(16, 48), height=(12, 40), sigma_px=(1.5, 4.0)))
 def test_f32_random_scenes(scene):
     check_f32(scene.gaussians, scene.camera, scene.config, scene.seed % 1000)
+    check_f32(scene.gaussians, scene.camera, scene.config, scene.seed % 1000, geometry="input")
 
 
+@pytest.mark.parametrize("geometry", ["float64", "input"])
 @pytest.mark.parametrize("profile", ["inria", "gsplat"])
-def test_f32_benchmark_like_scene(profile):
+def test_f32_benchmark_like_scene(profile, geometry):
     """A small benchmark scene (many overlaps, saturated pixels): float32 within tolerance
     outside near-ties, which are few."""
     g, cam = benchmark_scene(3000, 128, 96, seed=1)
-    info = check_f32(g, cam, RenderConfig(profile=profile))
+    info = check_f32(g, cam, RenderConfig(profile=profile), geometry=geometry)
     assert info["tie_pixels"] <= 0.05 * 128 * 96
+
+
+@pytest.mark.parametrize("profile", ["inria", "gsplat"])
+def test_f32_geometry_is_decided_in_float64(profile):
+    """geometry="float64" (the float32 default): every per-Gaussian decision -- visibility,
+    radii, tile rectangles, depth order, so the tile lists -- is the float64 render's, and the
+    per-Gaussian outputs are the float64 ones rounded to float32."""
+    g, cam = benchmark_scene(3000, 128, 96, seed=1)
+    g64 = g.astype(np.float32).astype(np.float64)
+    cfg = RenderConfig(profile=profile)
+    o64 = fast.render(g64, cam, cfg)
+    o32 = fast.render(g64.astype(np.float32), cam, cfg)
+    np.testing.assert_array_equal(o32.visible, o64.visible)
+    np.testing.assert_array_equal(o32.radii, o64.radii)
+    np.testing.assert_array_equal(o32.cache["tile_rect"], o64.cache["tile_rect"])
+    for k in ("gauss", "offsets"):
+        np.testing.assert_array_equal(o32.cache["lists"][k], o64.cache["lists"][k])
+    for k in ("means2d", "conics", "depths", "colors", "opacities"):
+        assert getattr(o32, k).dtype == np.float32
+        np.testing.assert_array_equal(getattr(o32, k), getattr(o64, k).astype(np.float32), err_msg=k)
+    grads = fast.render_backward(o32, np.ones(o32.image.shape, np.float32))
+    assert all(getattr(grads, k).dtype == np.float32 for k in GRAD_FIELDS)
+    with pytest.raises(ValueError, match="geometry"):
+        fast.render(g64.astype(np.float32), cam, cfg, geometry="float16")
 
 
 # ---------------------------------------------------------------------------------------------

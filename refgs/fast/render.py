@@ -42,6 +42,12 @@ CACHE_TAG = "refgs.fast"
 CHUNKS_PER_THREAD = 8
 #: Gaussians per chunk at least (the per-Gaussian kernels are cheap per item)
 MIN_GAUSSIAN_CHUNK = 2048
+#: precision choices of the per-Gaussian stage (covariance, projection, SH, culls, radii, tile
+#: rectangles, depths and so the depth order) for float32 Gaussians: "float64" (default) runs it
+#: in float64 and rounds its outputs to float32 for the compositing, so every per-Gaussian
+#: decision is the float64 one (no geometric or depth-order near-ties, docs/fast.md "Precision");
+#: "input" runs it in float32 like the float32 reference.  Float64 Gaussians: always float64.
+GEOMETRY_PRECISIONS = ("float64", "input")
 
 _pool_lock = threading.Lock()
 _pool: dict = {}
@@ -80,19 +86,23 @@ def _raster_constants(dt, profile) -> np.ndarray:
 
 
 def render(gaussians, camera, config: RenderConfig | None = None, *,
-           screen: bool = True) -> RenderOutput:
+           screen: bool = True, geometry: str = "float64") -> RenderOutput:
     """Render like :func:`refgs.render` (same RenderOutput fields and meanings, API-04).
 
     The ``cache`` holds what :func:`render_backward` needs (compiled-kernel inputs, tile lists).
     ``screen=False`` switches off the conservative per-row candidate screen of
     refgs.fast.kernels (every pixel x list-slot pair evaluated; bit-identical results, slower;
-    for tests).
+    for tests).  ``geometry``: one of GEOMETRY_PRECISIONS, the precision of the per-Gaussian
+    stage for float32 Gaussians (outputs are float32 either way).
     """
     config = RenderConfig() if config is None else config
     validate_inputs(gaussians, camera, config)
+    if geometry not in GEOMETRY_PRECISIONS:
+        _fail("geometry", f"one of {GEOMETRY_PRECISIONS}", geometry)
     profile = resolve_profile(config)
     g = gaussians
-    dt = g.means.dtype
+    out_dt = g.means.dtype                      # compositing and outputs
+    dt = np.dtype(np.float64) if geometry == "float64" else out_dt   # the per-Gaussian stage
     n = len(g)
     W, H = int(camera.width), int(camera.height)
     deg = config.active_sh_degree(g.sh.shape[1])
@@ -117,6 +127,11 @@ def render(gaussians, camera, config: RenderConfig | None = None, *,
     order = idx[np.argsort(depths[idx], kind="stable")]           # RAS-02: depth, ties by index
     gauss, offsets = rk.build_tile_lists(order, rect, gx * gy, gx)
 
+    conics_g = conics                              # the per-Gaussian stage's, for the backward
+    if out_dt != dt:                               # float32 compositing of float64 geometry
+        means2d, cov2d, conics = means2d.astype(out_dt), cov2d.astype(out_dt), conics.astype(out_dt)
+        depths, opac, colors = depths.astype(out_dt), opac.astype(out_dt), colors.astype(out_dt)
+    dt = out_dt
     bg = np.asarray(config.background, dt)
     rc = _raster_constants(dt, profile)
     image = np.empty((H, W, 3), dt)
@@ -133,7 +148,8 @@ def render(gaussians, camera, config: RenderConfig | None = None, *,
              "rows": (row_cnt, row_slots),
              "arrays": (means, log_scales, quats, logits, oscale, sh, w2c, campos),
              "cst": cst, "flags": flags, "rc": rc, "bg": bg, "screen": bool(screen),
-             "comp": comp, "o_sig": o_sig, "clamped": clamped, "scale": oscale}
+             "comp": comp, "o_sig": o_sig, "clamped": clamped, "scale": oscale,
+             "conics_geometry": conics_g, "geometry": geometry}
     return RenderOutput(image=image, alpha=alpha, depth=depth, n_contrib=n_contrib, radii=radii,
                         means2d=means2d, depths=depths, conics=conics, cov2d=cov2d, colors=colors,
                         opacities=opac, final_T=final_T, visible=visible, gaussians=g,
@@ -169,20 +185,23 @@ def render_backward(out: RenderOutput, v_image, v_alpha=None, v_depth=None) -> G
                  out.opacities, out.colors, out.depths, c["bg"], c["rc"],
                  bool(profile.grad_through_alpha_cap), gx, out.n_contrib, out.final_T,
                  v_image, v_alpha, v_depth, *c["rows"], contrib)
-    per_g = np.zeros((n, rk.N_GRAD_COLUMNS), dt)
+    means, log_scales, quats, logits, oscale, sh, w2c, campos = c["arrays"]
+    gdt = means.dtype                       # the per-Gaussian stage's precision (render geometry)
+    per_g = np.zeros((n, rk.N_GRAD_COLUMNS), gdt)
     rk.reduce_by_gaussian(gauss, contrib, per_g)
 
-    means, log_scales, quats, logits, oscale, sh, w2c, campos = c["arrays"]
-    v_means2d = np.where(out.visible[:, None], per_g[:, rk.G_MX:rk.G_MY + 1], 0).astype(dt)
+    v_means2d = np.where(out.visible[:, None], per_g[:, rk.G_MX:rk.G_MY + 1], 0).astype(gdt)
     v_conics = np.ascontiguousarray(per_g[:, rk.G_A:rk.G_C + 1])
     v_opac = np.ascontiguousarray(per_g[:, rk.G_O])
     v_colors = np.ascontiguousarray(per_g[:, rk.G_R:rk.G_BL + 1])
     v_depths = np.ascontiguousarray(per_g[:, rk.G_Z])
-    o_means, o_ls = np.empty((n, 3), dt), np.empty((n, 3), dt)
-    o_quats, o_logits, o_sh = np.empty((n, 4), dt), np.empty(n, dt), np.empty(sh.shape, dt)
+    o_means, o_ls = np.empty((n, 3), gdt), np.empty((n, 3), gdt)
+    o_quats, o_logits, o_sh = np.empty((n, 4), gdt), np.empty(n, gdt), np.empty(sh.shape, gdt)
     parallel_for(gk.gaussians_backward, n, means, log_scales, quats, logits, oscale, sh, w2c,
-                 c["cst"], c["flags"], campos, out.conics, c["comp"], c["o_sig"], c["clamped"],
-                 out.visible, v_means2d, v_conics, v_opac, v_colors, v_depths,
+                 c["cst"], c["flags"], campos, c["conics_geometry"], c["comp"], c["o_sig"],
+                 c["clamped"], out.visible, v_means2d, v_conics, v_opac, v_colors, v_depths,
                  o_means, o_ls, o_quats, o_logits, o_sh, min_chunk=MIN_GAUSSIAN_CHUNK)
-    return Gradients(means=o_means, log_scales=o_ls, quats=o_quats, opacity_logits=o_logits,
-                     sh=o_sh, means2d=v_means2d)
+    return Gradients(means=o_means.astype(dt, copy=False), log_scales=o_ls.astype(dt, copy=False),
+                     quats=o_quats.astype(dt, copy=False),
+                     opacity_logits=o_logits.astype(dt, copy=False),
+                     sh=o_sh.astype(dt, copy=False), means2d=v_means2d.astype(dt, copy=False))

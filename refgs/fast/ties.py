@@ -47,6 +47,10 @@ class TieBands:
 
 
 FLOAT32_BANDS = TieBands()
+#: for float32 compositing of float64 per-Gaussian results (refgs.fast's float32 default,
+#: ``geometry="float64"``): radii, rectangles, culls, clamps and the depth order are decided in
+#: float64, so only float64-level ties remain there; the per-pixel bands are FLOAT32_BANDS'.
+GEOMETRY64_BANDS = TieBands(depth=1e-12, geom=1e-12, kink=1e-12)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
