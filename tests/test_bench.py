@@ -101,3 +101,26 @@ def test_targets_are_judged_and_json_ready():
     assert t["ties_ok"] is False and abs(t["tie_fraction"] - 30 / (504 * 378)) < 1e-15
     _json.dumps(t, allow_nan=False)
     assert bench.targets([dict(row, n=10000)]) is None
+    row["backends"]["fast32g"] = dict(row["backends"]["fast32"], tie_pixels=3, tie_pixels_differing=1,
+                                      speedup_vs_ref64=np.float64(31.0))
+    t = bench.targets([row])
+    assert t["fast32g"]["speedup_ok"] is True and t["fast32g"]["ties_ok"] is True
+    assert t["speedup_ok"] is False                       # fast32's own row unchanged
+    _json.dumps(t, allow_nan=False)
+
+
+def test_fast32g_row_uses_geometry64_bands(tmp_path):
+    """fast32g (float32 compositing, float64 geometry) is compared outside the ties of its own
+    bands, which have no geometric or depth-order bands: never more flags than fast32's."""
+    pytest.importorskip("numba")
+    from types import SimpleNamespace
+
+    from refgs import bench
+
+    args = SimpleNamespace(n=[2000], size=["64x48"], backends=["ref64", "fast32", "fast32g"],
+                           repeats=1, profile="inria", fern_run=None, out=str(tmp_path / "b"),
+                           no_plots=True)
+    b = bench.run(args, progress=False)["results"][0]["backends"]
+    assert b["fast32g"]["tie_bands"] == "float32-compositing" and b["fast32"]["tie_bands"] == "float32"
+    assert b["fast32g"]["tie_pixels"] <= b["fast32"]["tie_pixels"]
+    assert b["fast32g"]["image_max_abs"] < 1e-5 and b["fast32g"]["grad_rel_l2"] < 1e-4

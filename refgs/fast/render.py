@@ -43,11 +43,12 @@ CHUNKS_PER_THREAD = 8
 #: Gaussians per chunk at least (the per-Gaussian kernels are cheap per item)
 MIN_GAUSSIAN_CHUNK = 2048
 #: precision choices of the per-Gaussian stage (covariance, projection, SH, culls, radii, tile
-#: rectangles, depths and so the depth order) for float32 Gaussians: "float64" (default) runs it
-#: in float64 and rounds its outputs to float32 for the compositing, so every per-Gaussian
-#: decision is the float64 one (no geometric or depth-order near-ties, docs/fast.md "Precision");
-#: "input" runs it in float32 like the float32 reference.  Float64 Gaussians: always float64.
-GEOMETRY_PRECISIONS = ("float64", "input")
+#: rectangles, depths and so the depth order) for float32 Gaussians: "input" (default, CNV-11:
+#: everything in the Gaussians' dtype, a model of a float32 GPU backend) or "float64" (an
+#: explicit mixed precision: that stage in float64, its outputs rounded to float32 for the
+#: compositing, so every per-Gaussian decision is the float64 one -- no geometric or depth-order
+#: near-ties; docs/fast.md "Mixed precision").  Float64 Gaussians: float64 either way.
+GEOMETRY_PRECISIONS = ("input", "float64")
 
 _pool_lock = threading.Lock()
 _pool: dict = {}
@@ -86,7 +87,7 @@ def _raster_constants(dt, profile) -> np.ndarray:
 
 
 def render(gaussians, camera, config: RenderConfig | None = None, *,
-           screen: bool = True, geometry: str = "float64") -> RenderOutput:
+           screen: bool = True, geometry: str = "input") -> RenderOutput:
     """Render like :func:`refgs.render` (same RenderOutput fields and meanings, API-04).
 
     The ``cache`` holds what :func:`render_backward` needs (compiled-kernel inputs, tile lists).
