@@ -12,7 +12,8 @@ and backward
     -> gaussians_backward (per Gaussian).
 
 Every kernel is compiled once per dtype (float32 / float64) and cached on disk (numba
-``cache=True``); computation happens in the Gaussians' dtype (CNV-11).
+``cache=True``); computation happens in the Gaussians' dtype (CNV-11), except for the per-Gaussian
+stage of a float32 render with ``geometry="float64"`` (GEOMETRY_PRECISIONS).
 
 Parallelism.  The kernels are plain ``nogil`` numba functions over a range of work items (tiles or
 Gaussians); :func:`parallel_for` cuts the range into chunks and runs them on a thread pool of
