@@ -101,4 +101,4 @@ def test_bench_without_optional_packages(tmp_path):
         print(sorted(doc['results'][0]['backends']), sorted(doc['unavailable']))
     """)
     assert r.returncode == 0, r.stdout + r.stderr
-    assert "['ref32', 'ref64'] ['fast32', 'fast64', 'gsplat', 'torch32', 'torch64']" in r.stdout, r.stdout
+    assert "['ref32', 'ref64'] ['fast32', 'fast32g', 'fast64', 'gsplat', 'torch32', 'torch64']" in r.stdout, r.stdout
