@@ -139,6 +139,46 @@ def _max_len(offsets, lo, hi):
     return m
 
 
+#: _slot_screen verdicts
+_SKIP, _ALL_ROWS, _SCREENED = 0, 1, 2
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _slot_screen(tab, s, x0, x1, y0, y1, eps, screen):
+    """The screen's per-slot part (module docstring, Screen), shared by :func:`_chords` and
+    :func:`_row_lists`: (verdict, mx, my, A, B, C, det, q, r_lo, r_hi) in float64; verdict
+    _SKIP (o G < 1/255 in the whole tile), _ALL_ROWS (no screen: switched off, odd conic or
+    non-finite bound) or _SCREENED (rows r_lo..r_hi may hold a chord)."""
+    T = TILE_SIZE
+    mx, my = np.float64(tab[s, 0]), np.float64(tab[s, 1])
+    A, B, C = np.float64(tab[s, 2]), np.float64(tab[s, 3]), np.float64(tab[s, 4])
+    o = np.float64(tab[s, 5])
+    det = A * C - B * B
+    if screen and o == 0.0:
+        return _SKIP, mx, my, A, B, C, det, 0.0, 0, -1   # alpha = 0 everywhere
+    dxm = max(abs(mx - x0), abs(mx - x1))
+    dym = max(abs(my - y0), abs(my - y1))
+    terms = abs(A) * dxm * dxm + abs(C) * dym * dym + 2.0 * abs(B) * dxm * dym
+    q = 2.0 * math.log(o / _ALPHA_MIN64) + SCREEN_ULPS * eps * terms + SCREEN_MARGIN
+    if not screen or not (A > 0.0 and C > 0.0 and det > 0.0 and math.isfinite(det)
+                          and math.isfinite(q) and math.isfinite(mx) and math.isfinite(my)):
+        return _ALL_ROWS, mx, my, A, B, C, det, q, 0, T - 1
+    if not q > 0.0:
+        return _SKIP, mx, my, A, B, C, det, q, 0, -1     # o G < 1/255 everywhere
+    # rows where the chord can be non-empty: dy^2 (det - F (AC + B^2)) <= A q (1 + F)
+    den = det - _F64_ULPS * (A * C + B * B)
+    r_lo, r_hi = 0, T - 1
+    if den > 0.0:
+        dy_max = math.sqrt(A * q * (1.0 + _F64_ULPS) / den) * (1.0 + _F64_ULPS) + _CHORD_PAD
+        ylo = my - dy_max - y0
+        yhi = my + dy_max - y0
+        if yhi < 0.0 or ylo > T - 1.0:
+            return _SKIP, mx, my, A, B, C, det, q, 0, -1
+        r_lo = 0 if ylo <= 0.0 else int(math.ceil(ylo))
+        r_hi = T - 1 if yhi >= T - 1.0 else int(math.floor(yhi))
+    return _SCREENED, mx, my, A, B, C, det, q, r_lo, r_hi
+
+
 @njit(cache=True, error_model="numpy")
 def _chords(tab, L, xs, ys, eps, screen, cnt, rs, lo, hi):
     """Per pixel row r: the slots that may reach alpha >= 1/255 somewhere in the row, in list
@@ -151,19 +191,11 @@ def _chords(tab, L, xs, ys, eps, screen, cnt, rs, lo, hi):
     y0 = np.float64(ys[0])
     y1 = np.float64(ys[T - 1])
     for s in range(L):
-        mx, my = np.float64(tab[s, 0]), np.float64(tab[s, 1])
-        A, B, C = np.float64(tab[s, 2]), np.float64(tab[s, 3]), np.float64(tab[s, 4])
-        o = np.float64(tab[s, 5])
-        det = A * C - B * B
-        if screen and o == 0.0:
-            continue                                      # alpha = 0 everywhere
-        dxm = max(abs(mx - x0), abs(mx - x1))
-        dym = max(abs(my - y0), abs(my - y1))
-        terms = abs(A) * dxm * dxm + abs(C) * dym * dym + 2.0 * abs(B) * dxm * dym
-        q = 2.0 * math.log(o / _ALPHA_MIN64) + SCREEN_ULPS * eps * terms + SCREEN_MARGIN
-        # no screen when switched off, for odd conics and for non-finite bounds
-        if not screen or not (A > 0.0 and C > 0.0 and det > 0.0 and math.isfinite(det)
-                              and math.isfinite(q) and math.isfinite(mx) and math.isfinite(my)):
+        verdict, mx, my, A, B, C, det, q, r_lo, r_hi = _slot_screen(tab, s, x0, x1, y0, y1, eps,
+                                                                   screen)
+        if verdict == _SKIP:
+            continue
+        if verdict == _ALL_ROWS:
             for r in range(T):
                 k = cnt[r]
                 rs[r, k] = s
@@ -171,19 +203,6 @@ def _chords(tab, L, xs, ys, eps, screen, cnt, rs, lo, hi):
                 hi[r, k] = T - 1
                 cnt[r] = k + 1
             continue
-        if not q > 0.0:
-            continue                                      # o G < 1/255 everywhere
-        # rows where the chord can be non-empty: dy^2 (det - F (AC + B^2)) <= A q (1 + F)
-        den = det - _F64_ULPS * (A * C + B * B)
-        r_lo, r_hi = 0, T - 1
-        if den > 0.0:
-            dy_max = math.sqrt(A * q * (1.0 + _F64_ULPS) / den) * (1.0 + _F64_ULPS) + _CHORD_PAD
-            ylo = my - dy_max - y0
-            yhi = my + dy_max - y0
-            if yhi < 0.0 or ylo > T - 1.0:
-                continue
-            r_lo = 0 if ylo <= 0.0 else int(math.ceil(ylo))
-            r_hi = T - 1 if yhi >= T - 1.0 else int(math.floor(yhi))
         inv_a = 1.0 / A
         b_a = B * inv_a
         a_q = A * q
@@ -232,34 +251,15 @@ def _row_lists(tab, L, xs, ys, eps, screen, cnt, rs, keep):
     y1 = np.float64(ys[T - 1])
     top = T - 1.0
     for s in range(L):
-        mx, my = np.float64(tab[s, 0]), np.float64(tab[s, 1])
-        A, B, C = np.float64(tab[s, 2]), np.float64(tab[s, 3]), np.float64(tab[s, 4])
-        o = np.float64(tab[s, 5])
-        det = A * C - B * B
-        if screen and o == 0.0:
-            continue                                      # alpha = 0 everywhere
-        dxm = max(abs(mx - x0), abs(mx - x1))
-        dym = max(abs(my - y0), abs(my - y1))
-        terms = abs(A) * dxm * dxm + abs(C) * dym * dym + 2.0 * abs(B) * dxm * dym
-        q = 2.0 * math.log(o / _ALPHA_MIN64) + SCREEN_ULPS * eps * terms + SCREEN_MARGIN
-        if not screen or not (A > 0.0 and C > 0.0 and det > 0.0 and math.isfinite(det)
-                              and math.isfinite(q) and math.isfinite(mx) and math.isfinite(my)):
+        verdict, mx, my, A, B, C, det, q, r_lo, r_hi = _slot_screen(tab, s, x0, x1, y0, y1, eps,
+                                                                   screen)
+        if verdict == _SKIP:
+            continue
+        if verdict == _ALL_ROWS:
             for r in range(T):
                 rs[r, cnt[r]] = s
                 cnt[r] += 1
             continue
-        if not q > 0.0:
-            continue                                      # o G < 1/255 everywhere
-        den = det - _F64_ULPS * (A * C + B * B)
-        r_lo, r_hi = 0, T - 1
-        if den > 0.0:
-            dy_max = math.sqrt(A * q * (1.0 + _F64_ULPS) / den) * (1.0 + _F64_ULPS) + _CHORD_PAD
-            ylo = my - dy_max - y0
-            yhi = my + dy_max - y0
-            if yhi < 0.0 or ylo > top:
-                continue
-            r_lo = 0 if ylo <= 0.0 else int(math.ceil(ylo))
-            r_hi = T - 1 if yhi >= top else int(math.floor(yhi))
         inv_a = 1.0 / A
         b_a = B * inv_a
         a_q = A * q
