@@ -37,6 +37,16 @@ def resolve_profile(config: RenderConfig) -> Profile:
     return get_profile(config.profile)
 
 
+def _all_finite(arr: np.ndarray) -> bool:
+    """np.all(np.isfinite(arr)), usually without its temporary: a NaN or an infinity anywhere
+    makes the sum non-finite, so a finite sum proves every value finite; a non-finite sum (which
+    huge finite values can also give) falls back to the exact test."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        if np.isfinite(np.sum(arr)):
+            return True
+    return bool(np.all(np.isfinite(arr)))
+
+
 def validate_gaussians(g: Gaussians) -> None:
     """Raise ValueError naming the field and what was expected (API-03, CNV-05, CNV-11)."""
     if not isinstance(g, Gaussians):
@@ -55,7 +65,7 @@ def validate_gaussians(g: Gaussians) -> None:
               {k: str(v) for k, v in dtypes.items()})
     for name in Gaussians.FIELDS:
         arr = getattr(g, name)
-        if not np.all(np.isfinite(arr)):
+        if not _all_finite(arr):
             bad = np.argwhere(~np.isfinite(arr))[0]
             _fail(f"Gaussians.{name}", "finite values", f"{arr[tuple(bad)]} at index {tuple(int(i) for i in bad)}")
     if n > 0:

@@ -362,6 +362,44 @@ def test_deterministic_across_runs_and_thread_counts(dtype):
             assert np.array_equal(getattr(gr, k), getattr(g0, k)), k
 
 
+def test_parallel_pieces_give_the_sequential_result():
+    """The depth sort, the tile lists and the per-Gaussian reduction split their work over the
+    threads (refgs.fast.render: depth_order, build_tile_lists, parallel_bands); each must equal
+    its one-thread form exactly, ties in depth included."""
+    from refgs.fast import kernels as rk
+    from refgs.fast.render import MIN_PARALLEL_SORT, build_tile_lists, depth_order, parallel_bands
+
+    rng = np.random.default_rng(3)
+    n = 3 * MIN_PARALLEL_SORT
+    depths = rng.random(n)
+    depths[::5] = 0.25                                  # many exact ties, broken by index
+    idx = np.flatnonzero(rng.random(n) < 0.8)
+    rect = np.zeros((n, 4), np.int64)
+    rect[:, 0] = rng.integers(0, 7, n)
+    rect[:, 1] = rect[:, 0] + rng.integers(0, 3, n)
+    rect[:, 2] = rng.integers(0, 5, n)
+    rect[:, 3] = rect[:, 2] + rng.integers(0, 4, n)
+    np.minimum(rect[:, 1], 8, out=rect[:, 1])
+    np.minimum(rect[:, 3], 6, out=rect[:, 3])
+    expected_order = idx[np.argsort(depths[idx], kind="stable")]
+    gauss1, offsets1 = rk.build_tile_lists(expected_order, rect, 8 * 6, 8)
+    contrib = rng.normal(size=(gauss1.size, rk.N_GRAD_COLUMNS))
+    ref = np.zeros((n, rk.N_GRAD_COLUMNS))
+    rk.reduce_by_gaussian(0, n, gauss1, contrib, ref)
+    saved = numba.get_num_threads()
+    try:
+        for nt in sorted({1, saved, min(2, numba.config.NUMBA_NUM_THREADS)}):
+            numba.set_num_threads(nt)
+            assert np.array_equal(depth_order(idx, depths), expected_order), nt
+            gauss, offsets = build_tile_lists(expected_order, rect, 8, 6)
+            assert np.array_equal(gauss, gauss1) and np.array_equal(offsets, offsets1), nt
+            out = np.zeros_like(ref)
+            parallel_bands(rk.reduce_by_gaussian, n, gauss1, contrib, out)
+            assert np.array_equal(out, ref), nt
+    finally:
+        numba.set_num_threads(saved)
+
+
 def test_validation_errors():
     cam = Camera.look_at((0, 0, -4.0), (0, 0, 0), fx=25, width=20, height=17)
     g = Gaussians(np.zeros((1, 3)), np.zeros((1, 3)), np.zeros((1, 4)), np.zeros(1), np.zeros((1, 1, 3)))

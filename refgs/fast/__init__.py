@@ -6,7 +6,8 @@
 The same model as refgs.render (every clause of docs/spec), compiled with numba: per-Gaussian
 stages in parallel over Gaussians, compositing in parallel over tiles with each pixel's loop
 sequential front to back, a race-free fixed-order gradient reduction (bit-identical results for
-any thread count).  Kernels compile once per dtype and are cached on disk.  Oracle backends:
+any thread count).  Kernels compile once per dtype and are cached on disk, and compiled again
+when any source file of this package changes (refgs.fast.cache).  Oracle backends:
 ``fast_float32``, ``fast_float64``, ``fast_gsplat_float32``, ``fast_gsplat_float64``.
 Design, accuracy and timings: docs/fast.md.
 
@@ -18,6 +19,14 @@ try:
 except ImportError as exc:  # pragma: no cover - exercised only without the extra
     raise ImportError(
         "refgs.fast needs numba, an optional dependency: pip install 'refgs[numba]'") from exc
+
+from pathlib import Path as _Path  # noqa: E402
+
+from . import kernels as _kernels  # noqa: E402
+from .cache import cache_dir_of as _cache_dir_of, ensure_fresh_cache as _ensure_fresh_cache  # noqa: E402
+
+# numba checks a cached kernel only against its own file: recompile all when any source changed
+_ensure_fresh_cache(_Path(__file__).parent, _cache_dir_of(_kernels.composite_forward))
 
 from .render import render, render_backward  # noqa: E402
 from .backend import (FastBackend, fast_float32, fast_float64, fast_gsplat_float32,  # noqa: E402

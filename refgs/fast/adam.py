@@ -10,26 +10,36 @@ No fast-math: LLVM may not fuse a multiply and an add into an FMA, which would c
 
 It handles the shapes training uses (a learning rate that is a scalar or constant along rows,
 frozen rows given per row or per row and column) and returns False for anything else, in which
-case ``Adam.step`` falls back to its numpy expressions.
+case ``Adam.step`` falls back to its numpy expressions.  Rows are split over
+``numba.get_num_threads()`` threads (``refgs.fast.render.parallel_for``).
 """
 from __future__ import annotations
 
 import numpy as np
 from numba import njit
 
+from .render import parallel_for
+
+
+#: rows per chunk at least (an element costs a few ns; smaller chunks are not worth a thread)
+MIN_ROW_CHUNK = 4096
+
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _update(p, g, m, v, lr, keep, c1, b2, c2, bc1, sbc2, eps, tmp):
-    """p, g, m, v (N, C) contiguous, one dtype; lr (C,) float64; keep (N, C) bool or (0, 0);
-    tmp a 1-element array of the parameter's dtype (storing the float64 step there rounds it
-    to that dtype first, as numpy's ``.astype(p.dtype)``).
+def _update(lo, hi, p, g, m, v, lr, keep, c1, b2, c2, bc1, sbc2, eps):
+    """Rows lo..hi of p, g, m, v (N, C) contiguous, one dtype; lr (C,) float64; keep (N, C)
+    bool or (0, 0).  Each element is independent, so any split of the rows over threads gives
+    the same bits.
 
     c1 = 1 - b1, b2, c2 = 1 - b2 in the parameter's dtype; bc1 = 1 - b1^s, sbc2 =
     sqrt(1 - b2^s), eps float64 -- the scalars of Adam.step, with the types numpy gives them.
     """
-    n, cols = p.shape
+    cols = p.shape[1]
     has_keep = keep.shape[0] > 0
-    for i in range(n):
+    # storing the float64 step in tmp rounds it to the parameter's dtype first, as numpy's
+    # ``.astype(p.dtype)``
+    tmp = np.empty(1, p.dtype)
+    for i in range(lo, hi):
         for j in range(cols):
             if has_keep and keep[i, j]:
                 continue
@@ -72,9 +82,10 @@ def adam_update(p, g, m, v, lr, keep, step: int, betas, eps: float) -> bool:
         return False
     b1, b2 = float(betas[0]), float(betas[1])
     dt = p.dtype.type
-    _update(p.reshape(n, cols), g.reshape(n, cols), m.reshape(n, cols), v.reshape(n, cols),
-            lr_cols, keep2, dt(1.0 - b1), dt(b2), dt(1.0 - b2), 1.0 - b1 ** step,
-            float(np.sqrt(1.0 - b2 ** step)), float(eps), np.zeros(1, p.dtype))
+    parallel_for(_update, n, p.reshape(n, cols), g.reshape(n, cols), m.reshape(n, cols),
+                 v.reshape(n, cols), lr_cols, keep2, dt(1.0 - b1), dt(b2), dt(1.0 - b2),
+                 1.0 - b1 ** step, float(np.sqrt(1.0 - b2 ** step)), float(eps),
+                 min_chunk=MIN_ROW_CHUNK)
     return True
 
 

@@ -23,8 +23,8 @@ loop of the spec instead of the reference's batched cumprod:
   tile sums its pixels' contributions per list slot in a fixed order -- per lane pair (c, c + 8)
   over the rows, then the 8 pair sums in lane order -- and writes them to a buffer row per
   intersection;
-  :func:`reduce_by_gaussian` then adds the rows into per-Gaussian gradients sequentially in
-  intersection order.  No atomics, no races: the result is bit-identical for any thread count and
+  :func:`reduce_by_gaussian` then adds the rows into per-Gaussian gradients in intersection
+  order (threads split the Gaussians, not the intersections).  No atomics, no races: the result is bit-identical for any thread count and
   any split of the tiles into work items.
 
 Screen (RAS-09: an implementation device, not part of the model).  Per tile, for each list slot
@@ -78,30 +78,71 @@ _HALF = TILE_SIZE // 2
 _NT_HALF = N_GRAD_COLUMNS * _HALF
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def merge_runs(keys, a, b, out):
+    """Stable merge of two index runs a, b (each sorted by keys[.], stably) into out, taking
+    from a on equal keys: when every index of a precedes every index of b this is the stable
+    order of a and b together (the depth order of RAS-02).  keys must be free of NaN."""
+    i = j = k = 0
+    na, nb = a.size, b.size
+    while i < na and j < nb:
+        if keys[b[j]] < keys[a[i]]:
+            out[k] = b[j]
+            j += 1
+        else:
+            out[k] = a[i]
+            i += 1
+        k += 1
+    while i < na:
+        out[k] = a[i]
+        i += 1
+        k += 1
+    while j < nb:
+        out[k] = b[j]
+        j += 1
+        k += 1
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def tile_counts(lo, hi, order, rect, gx, counts):
+    """counts[t] = number of Gaussians of ``order`` whose tile rectangle holds tile t, for the
+    tiles of tile rows lo..hi (the first pass of :func:`build_tile_lists`)."""
+    for g in order:
+        for ty in range(max(lo, rect[g, 2]), min(hi, rect[g, 3])):
+            for tx in range(rect[g, 0], rect[g, 1]):
+                counts[ty * gx + tx] += 1
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def tile_fill(lo, hi, order, rect, gx, cursor, gauss):
+    """The second pass for tile rows lo..hi: each Gaussian of ``order``, in that order, appended
+    to the lists of its tiles (cursor[t]: next free position of tile t's list)."""
+    for g in order:
+        for ty in range(max(lo, rect[g, 2]), min(hi, rect[g, 3])):
+            for tx in range(rect[g, 0], rect[g, 1]):
+                t = ty * gx + tx
+                gauss[cursor[t]] = g
+                cursor[t] += 1
+
+
 @njit(cache=True, error_model="numpy")
 def build_tile_lists(order, rect, n_tiles, gx):
     """Per-tile Gaussian lists in depth order (RAS-01, RAS-02).
 
     order (V,) int64: visible Gaussians sorted by (depth, index); rect (N,4) int64 (x0,x1,y0,y1),
     max exclusive.  Returns (gauss (P,) int64, offsets (n_tiles+1,) int64): tile t's list is
-    gauss[offsets[t]:offsets[t+1]].
+    gauss[offsets[t]:offsets[t+1]].  (refgs.fast.render runs the two passes over bands of tile
+    rows in parallel, with the same result.)
     """
+    gy = n_tiles // gx
     counts = np.zeros(n_tiles, np.int64)
-    for g in order:
-        for ty in range(rect[g, 2], rect[g, 3]):
-            for tx in range(rect[g, 0], rect[g, 1]):
-                counts[ty * gx + tx] += 1
+    tile_counts(0, gy, order, rect, gx, counts)
     offsets = np.zeros(n_tiles + 1, np.int64)
     for t in range(n_tiles):
         offsets[t + 1] = offsets[t] + counts[t]
     cursor = offsets[:-1].copy()
     gauss = np.empty(offsets[n_tiles], np.int64)
-    for g in order:
-        for ty in range(rect[g, 2], rect[g, 3]):
-            for tx in range(rect[g, 0], rect[g, 1]):
-                t = ty * gx + tx
-                gauss[cursor[t]] = g
-                cursor[t] += 1
+    tile_fill(0, gy, order, rect, gx, cursor, gauss)
     return gauss, offsets
 
 
@@ -524,11 +565,13 @@ def composite_backward(lo, hi, gauss, offsets, means2d, conics, opac, colors, de
                 contrib[start + s, f] = total
 
 
-@njit(cache=True, error_model="numpy")
-def reduce_by_gaussian(gauss, contrib, out):
-    """out[g] += contrib[p] for every intersection p of Gaussian g = gauss[p], sequentially in
-    intersection order (a fixed-order, race-free reduction).  out (N, 10) zero-initialised."""
+@njit(cache=True, nogil=True, error_model="numpy")
+def reduce_by_gaussian(lo, hi, gauss, contrib, out):
+    """out[g] += contrib[p] for every intersection p of a Gaussian g = gauss[p] with
+    lo <= g < hi, in intersection order (a fixed-order, race-free reduction: each Gaussian's sum
+    has the same order whatever the split of [0, N) into ranges).  out (N, 10) zero-initialised."""
     for p in range(gauss.size):
         g = gauss[p]
-        for k in range(contrib.shape[1]):
-            out[g, k] += contrib[p, k]
+        if lo <= g < hi:
+            for k in range(contrib.shape[1]):
+                out[g, k] += contrib[p, k]

@@ -3,12 +3,14 @@
 Stages (the same as refgs.render, clause ids there):
 
     validate_inputs (numpy, O(N))  ->  gaussians_forward (covariance, projection, SH; per Gaussian)
-    -> stable argsort by depth (numpy) + build_tile_lists (counting sort)
+    -> stable argsort by depth (numpy) + build_tile_lists (counting sort, bands of tile rows
+       in parallel)
     -> composite_forward (per tile)
 
 and backward
 
-    composite_backward (per tile, a per-intersection buffer) -> reduce_by_gaussian (sequential)
+    composite_backward (per tile, a per-intersection buffer) -> reduce_by_gaussian (per
+    Gaussian, intersection order; bands of Gaussians in parallel)
     -> gaussians_backward (per Gaussian).
 
 Every kernel is compiled once per dtype (float32 / float64) and cached on disk (numba
@@ -43,6 +45,8 @@ CACHE_TAG = "refgs.fast"
 CHUNKS_PER_THREAD = 8
 #: Gaussians per chunk at least (the per-Gaussian kernels are cheap per item)
 MIN_GAUSSIAN_CHUNK = 2048
+#: visible Gaussians below which the depth sort runs in one thread (splitting costs more)
+MIN_PARALLEL_SORT = 16384
 #: precision choices of the per-Gaussian stage (covariance, projection, SH, culls, radii, tile
 #: rectangles, depths and so the depth order) for float32 Gaussians: "input" (default, CNV-11:
 #: everything in the Gaussians' dtype, a model of a float32 GPU backend) or "float64" (an
@@ -74,6 +78,53 @@ def parallel_for(kernel, n_items: int, *args, min_chunk: int = 1) -> None:
     futures = [_executor(n_threads).submit(kernel, lo, hi, *args) for lo, hi in bounds]
     for f in futures:
         f.result()
+
+
+def parallel_bands(kernel, n_items: int, *args) -> None:
+    """``kernel(lo, hi, *args)`` over [0, n_items) in one band per thread: for kernels whose every
+    call scans a whole shared input (the tile lists, the per-Gaussian reduction) and keeps only
+    what falls in its band, so more bands than threads would only repeat the scan."""
+    n_threads = max(1, int(numba.get_num_threads()))
+    parallel_for(kernel, n_items, *args, min_chunk=max(1, -(-n_items // n_threads)))
+
+
+def depth_order(idx, depths) -> np.ndarray:
+    """``idx[np.argsort(depths[idx], kind="stable")]`` (RAS-02: by depth, ties by index; idx
+    ascending), with the sort split over the threads: each thread sorts a contiguous part of idx
+    stably (numpy releases the GIL while sorting), then the sorted parts are merged, earlier
+    part first on ties (:func:`refgs.fast.kernels.merge_runs`) -- the same order."""
+    keys = depths[idx]
+    n_threads = max(1, int(numba.get_num_threads()))
+    if n_threads == 1 or idx.size < MIN_PARALLEL_SORT or not np.all(np.isfinite(keys)):
+        return idx[np.argsort(keys, kind="stable")]
+    bounds = np.linspace(0, idx.size, n_threads + 1).astype(np.int64)
+    runs = [(lo, hi) for lo, hi in zip(bounds[:-1], bounds[1:])]
+    parts = list(_executor(n_threads).map(
+        lambda b: b[0] + np.argsort(keys[b[0]:b[1]], kind="stable"), runs))
+    while len(parts) > 1:                       # merge neighbours: earlier part first on ties
+        merged = []
+        for k in range(0, len(parts) - 1, 2):
+            out = np.empty(parts[k].size + parts[k + 1].size, np.int64)
+            rk.merge_runs(keys, parts[k], parts[k + 1], out)
+            merged.append(out)
+        if len(parts) % 2:
+            merged.append(parts[-1])
+        parts = merged
+    return idx[parts[0]]
+
+
+def build_tile_lists(order, rect, gx: int, gy: int):
+    """refgs.fast.kernels.build_tile_lists (RAS-01, RAS-02) with both passes split into bands of
+    tile rows over the threads; each band takes the Gaussians in ``order``, so the lists are the
+    same as the sequential ones.  Returns (gauss (P,) int64, offsets (gx gy + 1,) int64)."""
+    counts = np.zeros(gx * gy, np.int64)
+    parallel_bands(rk.tile_counts, gy, order, rect, gx, counts)
+    offsets = np.zeros(gx * gy + 1, np.int64)
+    np.cumsum(counts, out=offsets[1:])
+    cursor = offsets[:-1].copy()
+    gauss = np.empty(int(offsets[-1]), np.int64)
+    parallel_bands(rk.tile_fill, gy, order, rect, gx, cursor, gauss)
+    return gauss, offsets
 
 
 def _c(a, dt):
@@ -125,9 +176,8 @@ def render(gaussians, camera, config: RenderConfig | None = None, *,
                  o_sig, opac, colors, clamped, radii, visible, rect, min_chunk=MIN_GAUSSIAN_CHUNK)
 
     gx, gy = tile_grid(W, H)
-    idx = np.flatnonzero(visible)
-    order = idx[np.argsort(depths[idx], kind="stable")]           # RAS-02: depth, ties by index
-    gauss, offsets = rk.build_tile_lists(order, rect, gx * gy, gx)
+    order = depth_order(np.flatnonzero(visible), depths)          # RAS-02: depth, ties by index
+    gauss, offsets = build_tile_lists(order, rect, gx, gy)
 
     conics_g = conics                              # the per-Gaussian stage's, for the backward
     if out_dt != dt:                               # float32 compositing of float64 geometry
@@ -190,7 +240,7 @@ def render_backward(out: RenderOutput, v_image, v_alpha=None, v_depth=None) -> G
     means, log_scales, quats, logits, oscale, sh, w2c, campos = c["arrays"]
     gdt = means.dtype                       # the per-Gaussian stage's precision (render geometry)
     per_g = np.zeros((n, rk.N_GRAD_COLUMNS), gdt)
-    rk.reduce_by_gaussian(gauss, contrib, per_g)
+    parallel_bands(rk.reduce_by_gaussian, n, gauss, contrib, per_g)
 
     v_means2d = np.where(out.visible[:, None], per_g[:, rk.G_MX:rk.G_MY + 1], 0).astype(gdt)
     v_conics = np.ascontiguousarray(per_g[:, rk.G_A:rk.G_C + 1])
