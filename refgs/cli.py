@@ -353,6 +353,13 @@ def plot_history(history: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def peak_rss_gb() -> float:
+    """This process's peak resident memory in GB (``ru_maxrss``: KiB on Linux, bytes on macOS)."""
+    import resource
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return rss / (1024 ** 3 if sys.platform == "darwin" else 1024 ** 2)
+
+
 def finish(run_dir: Path, trainer: Trainer, progress: bool = True) -> dict:
     """Model PLY, test renders, metrics.json, history.json and the PSNR plot (idempotent)."""
     cfg = trainer.cfg
@@ -361,6 +368,7 @@ def finish(run_dir: Path, trainer: Trainer, progress: bool = True) -> dict:
         trainer.test_psnr()
     metrics = evaluate(trainer, cfg.lpips, run_dir / RENDER_DIR / "test")
     metrics["n_init_points"] = read_config(run_dir).get("n_init_points")
+    metrics["peak_rss_gb"] = round(peak_rss_gb(), 3)
     atomic_write_json(run_dir / HISTORY_FILE, trainer.history)
     plot_history(trainer.history, run_dir / PLOT_FILE)
     atomic_write_json(run_dir / METRICS_FILE, metrics)

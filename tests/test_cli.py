@@ -213,9 +213,10 @@ def test_run_directory_contents(tiny_run):
         assert key in cfg["provenance"]
     m = json.loads((tiny_run / "metrics.json").read_text())
     for key in ("psnr", "ssim", "ssim_skimage", "lpips_vgg", "lpips_vgg_official", "lpips_alex",
-                "n_gaussians", "n_init_points", "iterations", "train_seconds", "per_view"):
+                "n_gaussians", "n_init_points", "iterations", "train_seconds", "peak_rss_gb", "per_view"):
         assert key in m
     assert m["iterations"] == 20 and m["n_init_points"] == TINY_POINTS
+    assert 0.01 < m["peak_rss_gb"] < 64
     assert len(m["per_view"]) == 2 and 5 < m["psnr"] < 60
     h = json.loads((tiny_run / "history.json").read_text())
     assert h["test_t"] == [10, 20] and len(h["train_psnr"]) == 20

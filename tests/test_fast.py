@@ -433,6 +433,14 @@ def test_backend_objects():
     assert grads.means.dtype == np.float32 and grads.means.shape == (4, 3)
     with pytest.raises(ValueError, match="profile"):
         fast.fast_float32.render(g, cam, RenderConfig(profile="gsplat"))
+    # the mixed precision backend renders exactly refgs.fast.render(..., geometry="float64")
+    b = fast.fast_float32_geom64
+    assert (b.profile, b.dtype, b.geometry) == ("inria", "float32", "float64") and "geom64" in b.name
+    mixed = b.render(g, cam, RenderConfig())
+    direct = fast.render(g.astype(np.float32), cam, RenderConfig(), geometry="float64")
+    assert mixed.image.dtype == np.float32 and np.array_equal(mixed.image, direct.image)
+    with pytest.raises(ValueError, match="geometry"):
+        fast.FastBackend("inria", "float32", geometry="float16")
     protocol = pytest.importorskip("oracle.protocol")
     info = protocol.load_backend("refgs.fast:fast_float32")
     assert info.has_backward and info.dtype == "float32" and info.profile == "inria"

@@ -8,7 +8,8 @@ stages in parallel over Gaussians, compositing in parallel over tiles with each 
 sequential front to back, a race-free fixed-order gradient reduction (bit-identical results for
 any thread count).  Kernels compile once per dtype and are cached on disk, and compiled again
 when any source file of this package changes (refgs.fast.cache).  Oracle backends:
-``fast_float32``, ``fast_float64``, ``fast_gsplat_float32``, ``fast_gsplat_float64``.
+``fast_float32``, ``fast_float64``, ``fast_gsplat_float32``, ``fast_gsplat_float64`` and the mixed
+precision ``fast_float32_geom64``.
 Design, accuracy and timings: docs/fast.md.
 
 numba is an optional dependency: ``import refgs`` never imports it; importing this package
@@ -29,8 +30,8 @@ from .cache import cache_dir_of as _cache_dir_of, ensure_fresh_cache as _ensure_
 _ensure_fresh_cache(_Path(__file__).parent, _cache_dir_of(_kernels.composite_forward))
 
 from .render import render, render_backward  # noqa: E402
-from .backend import (FastBackend, fast_float32, fast_float64, fast_gsplat_float32,  # noqa: E402
-                      fast_gsplat_float64)
+from .backend import (FastBackend, fast_float32, fast_float32_geom64, fast_float64,  # noqa: E402
+                      fast_gsplat_float32, fast_gsplat_float64)
 
 __all__ = ["render", "render_backward", "FastBackend", "fast_float32", "fast_float64",
-           "fast_gsplat_float32", "fast_gsplat_float64"]
+           "fast_gsplat_float32", "fast_gsplat_float64", "fast_float32_geom64"]
