@@ -24,8 +24,8 @@ loop of the spec instead of the reference's batched cumprod:
   over the rows, then the 8 pair sums in lane order -- and writes them to a buffer row per
   intersection;
   :func:`reduce_by_gaussian` then adds the rows into per-Gaussian gradients in intersection
-  order (threads split the Gaussians, not the intersections).  No atomics, no races: the result is bit-identical for any thread count and
-  any split of the tiles into work items.
+  order (threads split the Gaussians, not the intersections).  No atomics, no races: the result
+  is bit-identical for any thread count and any split of the tiles into work items.
 
 Screen (RAS-09: an implementation device, not part of the model).  Per tile, for each list slot
 and each of the 16 pixel rows, the columns where alpha could reach 1/255 are the chord of the

@@ -3,8 +3,8 @@
 Stages (the same as refgs.render, clause ids there):
 
     validate_inputs (numpy, O(N))  ->  gaussians_forward (covariance, projection, SH; per Gaussian)
-    -> stable argsort by depth (numpy) + build_tile_lists (counting sort, bands of tile rows
-       in parallel)
+    -> stable depth sort (numpy, parts on the threads, merged: depth_order) + build_tile_lists
+       (counting sort, bands of tile rows on the threads)
     -> composite_forward (per tile)
 
 and backward
