@@ -16,8 +16,8 @@ import tempfile
 import warnings
 from pathlib import Path
 
-from refgs.cli import _restore, peak_rss_gb
-from refgs.train.checkpoint import save_checkpoint
+from refgs.cli import _restore
+from refgs.train.checkpoint import peak_rss_gb, save_checkpoint
 
 
 def main() -> None:

@@ -37,7 +37,6 @@ import io
 import json
 import os
 import platform
-import resource
 import statistics
 import time
 from dataclasses import dataclass
@@ -49,6 +48,7 @@ import numpy as np
 from .errors import ConfigError
 from .io.atomic import atomic_write_json, atomic_write_text
 from .synthetic import benchmark_scene
+from .train.checkpoint import peak_rss_gb
 from .types import RenderConfig
 
 DEFAULT_NS = (1_000, 10_000, 50_000, 200_000)
@@ -129,10 +129,6 @@ def _make_backend(name: str, profile: str) -> BenchBackend:
 
 
 ALL_BACKENDS = ("ref64", "ref32", "fast64", "fast32", "fast32g", "torch64", "torch32", "gsplat")
-
-
-def _peak_rss_gb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024 ** 2
 
 
 def _parse_size(s: str) -> tuple[int, int]:
@@ -288,7 +284,7 @@ def bench_scene(label, n, size, g64, cam, backends, repeats: int, profile: str) 
         base = res["backends"]["ref64"]["forward_backward_s"]
         for row in res["backends"].values():
             row["speedup_vs_ref64"] = base / row["forward_backward_s"]
-    res["peak_rss_gb"] = _peak_rss_gb()
+    res["peak_rss_gb"] = peak_rss_gb()
     return res
 
 
@@ -537,7 +533,7 @@ def run(args, progress: bool = True) -> dict:
         + ", ".join(f"{k} {_fmt(v, '.2f')}" for k, v in exps.items()))
     if doc["targets"] is not None:
         say("targets (50k, 504x378): " + json.dumps(doc["targets"]))
-    say(f"peak memory (process max RSS): {_peak_rss_gb():.2f} GB; written to {out_dir}")
+    say(f"peak memory (process max RSS): {peak_rss_gb():.2f} GB; written to {out_dir}")
     return doc
 
 

@@ -37,8 +37,8 @@ from .io.atomic import atomic_path, atomic_save_png, atomic_write_json
 from .io.ply import read_gaussians_ply, write_gaussians_ply
 from .train.backend import available_backends, get_backend
 from .train.checkpoint import (CHECKPOINT_FILE, CONFIG_FILE, CheckpointError, RunDir,
-                               load_checkpoint, provenance, read_config, save_checkpoint,
-                               source_hash, write_config)
+                               load_checkpoint, peak_rss_gb, provenance, read_config,
+                               save_checkpoint, source_hash, write_config)
 from .train.densify import DENSIFY_PRESETS, SCREEN_SIZE_RULES
 from .train.loss import LOSS_FORMS
 from .train.schedule import scene_extent
@@ -351,13 +351,6 @@ def plot_history(history: dict, path: Path) -> None:
         with open(tmp, "wb") as fh:
             fig.savefig(fh, format="png")
     plt.close(fig)
-
-
-def peak_rss_gb() -> float:
-    """This process's peak resident memory in GB (``ru_maxrss``: KiB on Linux, bytes on macOS)."""
-    import resource
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    return rss / (1024 ** 3 if sys.platform == "darwin" else 1024 ** 2)
 
 
 def finish(run_dir: Path, trainer: Trainer, progress: bool = True) -> dict:

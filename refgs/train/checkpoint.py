@@ -173,6 +173,13 @@ def _cpu_name() -> str:
     return platform.processor() or platform.machine()
 
 
+def peak_rss_gb() -> float:
+    """This process's peak resident memory in GB (``ru_maxrss``: KiB on Linux, bytes on macOS)."""
+    import resource
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return rss / (1024 ** 3 if sys.platform == "darwin" else 1024 ** 2)
+
+
 def source_hash() -> str:
     """sha256 (16 hex digits) of every ``refgs/**/*.py`` file's path and bytes: a resume compares
     it with the run's to warn when the code changed (bitwise equality needs the same code)."""
