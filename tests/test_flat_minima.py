@@ -116,6 +116,30 @@ def test_fm02_same_seed_same_offsets_and_dtype():
         assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
 
 
+def test_fm01_offsets_of_the_perturbed_rows_are_the_whole_array_formula():
+    """FM-01/FM-02: sap_offsets works on the perturbed rows only; each row equals, bit for bit,
+    the whole-array formula delta = R clamp(alpha gamma sigma z) applied to every row and then
+    masked (the draws are made for every row, in the documented order, either way)."""
+    from refgs.covariance import normalize_quats, quat_to_rotmat
+    rng = np.random.default_rng(11)
+    n = 3000
+    g = refgs.Gaussians(rng.normal(size=(n, 3)), rng.normal(size=(n, 3)) - 2,
+                        rng.normal(size=(n, 4)), rng.normal(size=n), rng.normal(size=(n, 4, 3)))
+    for noise in (NoiseShape(), NoiseShape("iso_max"), NoiseShape("iso_fixed", 0.05)):
+        for clamp in ("axis", "ellipsoid", "none"):
+            off, mask = sap_offsets(g, gamma=2.0, p=0.3, alpha=0.6, clamp=clamp,
+                                    rng=np.random.default_rng(5), noise=noise)
+            draw = np.random.default_rng(5)
+            assert np.array_equal(mask, draw.random(n) < 0.3)
+            z = draw.standard_normal((n, 3))
+            R = quat_to_rotmat(normalize_quats(g.quats)[0])
+            s = np.exp(g.log_scales)
+            sigma = {"anisotropic": s, "iso_max": np.repeat(s.max(-1, keepdims=True), 3, -1),
+                     "iso_fixed": np.full_like(s, 0.05)}[noise.kind]
+            full = np.einsum("nij,nj->ni", R, clamp_displacement(0.6 * 2.0 * sigma * z, s, clamp))
+            assert np.array_equal(off, np.where(mask[:, None], full, 0.0))
+
+
 def test_fm01_validates_like_render():
     """FM-01: bad input is refused like render does (ValueError naming the field)."""
     g = copies(3, [-1.0, -2.0, -0.5], [1.0, 0.0, 0.0, 0.0])

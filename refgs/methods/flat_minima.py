@@ -124,9 +124,11 @@ def sap_offsets(gaussians: Gaussians, gamma: float = GAMMA, p: float = P_PERTURB
     n = len(gaussians)
     mask = rng.random(n) < p
     z = rng.standard_normal((n, 3))
-    q_unit, _, _ = normalize_quats(gaussians.quats.astype(np.float64))
+    rows = np.flatnonzero(mask)       # only the perturbed Gaussians need R and S (a fraction p)
+    z = z[rows]
+    q_unit, _, _ = normalize_quats(gaussians.quats[rows].astype(np.float64))
     R = quat_to_rotmat(q_unit)
-    s = np.exp(gaussians.log_scales.astype(np.float64))
+    s = np.exp(gaussians.log_scales[rows].astype(np.float64))
     if noise.kind == "anisotropic":
         sigma = s
     elif noise.kind == "iso_max":
@@ -139,9 +141,9 @@ def sap_offsets(gaussians: Gaussians, gamma: float = GAMMA, p: float = P_PERTURB
         raise ValueError(f"noise: expected anisotropic, iso_max, iso_mean or iso_fixed, got {noise.kind!r}")
     local = alpha * gamma * sigma * z                 # delta = alpha gamma R S z, in the principal frame
     local = clamp_displacement(local, s, mode)        # clamp after the schedule (FM-04)
-    offsets = np.einsum("nij,nj->ni", R, local)
-    offsets[~mask] = 0.0
-    return offsets.astype(dt), mask
+    offsets = np.zeros((n, 3), dt)
+    offsets[rows] = np.einsum("nij,nj->ni", R, local)     # rounded to dt on assignment
+    return offsets, mask
 
 
 def clipped_fraction(alpha: float, mode: str, gamma: float = GAMMA, n: int = 200_000, seed: int = 0,
