@@ -517,11 +517,13 @@ def build_parser() -> argparse.ArgumentParser:
     from .bench import add_parser as _add_bench
     from .figures import add_parser as _add_figures
     from .flatness import add_parser as _add_flatness
+    from .records import add_parser as _add_record
     from .tables import add_parser as _add_table
     _add_bench(sub)
     _add_flatness(sub)
     _add_table(sub)
     _add_figures(sub)
+    _add_record(sub)
     return p
 
 
@@ -625,6 +627,9 @@ def main(argv: list | None = None) -> int:
         elif args.command == "figures":
             from .figures import run as figures_run
             figures_run(args)
+        elif args.command == "record":
+            from .records import run as record_run
+            record_run(args)
         return 0
     except RefgsError as exc:
         print(f"refgs: error: {_one_line(exc)}", file=sys.stderr)

@@ -17,7 +17,8 @@ scenes are not committed).  It writes
 - ``index.md`` -- what each file shows and which runs it was made from.
 
 Renders are read from ``RUN/renders/test/`` (written when the run finished); a run without them is
-rendered from its checkpoint.  Ground truth is loaded from the scene in the run's config.json.
+rendered from its checkpoint; a record (``refgs record``: config, metrics and history only) gets
+the curves but no renders, which index.md says.  Ground truth is loaded from the scene in the run's config.json.
 Nothing is trained or perturbed here, so the command takes seconds, not hours.
 """
 from __future__ import annotations
@@ -97,6 +98,15 @@ def _pairs(run: dict, views_cache: dict):
                               f"{v.name} is {gt.shape[1]}x{gt.shape[0]}")
         out.append((v.name, img, gt))
     return out
+
+
+def has_images(run: dict) -> bool:
+    """Whether a run's test renders can be shown: saved PNGs or a checkpoint to render from
+    (a record of ``refgs record`` has neither)."""
+    from .cli import RENDER_DIR
+    from .train.checkpoint import CHECKPOINT_FILE
+
+    return (run["dir"] / RENDER_DIR / "test").is_dir() or (run["dir"] / CHECKPOINT_FILE).is_file()
 
 
 def _save(fig, path: Path) -> None:
@@ -214,6 +224,10 @@ def make_figures(run_dirs, flatness=(), out: str | Path = DEFAULT_OUT) -> list[P
     views_cache: dict = {}
     written, index = [], ["# refgs figures", "", "Made by `refgs figures` (refgs/figures.py).", ""]
     for run in runs:
+        if not has_images(run):
+            index.append(f"- no renders of {run['dir']} ({run['label']}): a record (refgs "
+                         "record), without images or checkpoint")
+            continue
         path = out / f"renders_{_safe(run['name'])}.png"
         plot_renders(run, path, views_cache)
         written.append(path)
@@ -252,5 +266,5 @@ def run(args) -> list[Path]:
     return written
 
 
-__all__ = ["make_figures", "load_figure_run", "load_flatness", "reinit_iterations",
+__all__ = ["make_figures", "load_figure_run", "has_images", "load_flatness", "reinit_iterations",
            "ERROR_VMAX", "TRAIN_PSNR_WINDOW"]

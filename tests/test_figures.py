@@ -69,3 +69,50 @@ def test_fm14_figures_errors(fig_runs, tmp_path, capsys):
     assert rc == 2 and "refgs flatness" in err and not (tmp_path / "o").exists()
     rc, _, err = run_cli(["figures", "--out", tmp_path / "o"], capsys)
     assert rc == 2 and "RUN_DIR" in err
+
+
+def test_record_keeps_what_tables_and_curves_need(fig_runs, tmp_path, capsys):
+    """refgs record: config/metrics byte for byte, the history rounded, flatness outputs as
+    they are; refgs table and refgs figures take the records (figures without renders)."""
+    import json
+
+    from refgs.records import RECORD_DECIMALS
+    runs, flat = fig_runs
+    rec = tmp_path / "records"
+    rc, stdout, err = run_cli(["record", runs["fm"], runs["fm_noreinit"], flat, "--out", rec], capsys)
+    assert rc == 0, err
+    assert {p.name for p in rec.iterdir()} == {"fm", "fm_noreinit", "flat"}
+    for name in ("fm", "fm_noreinit"):
+        for f in ("config.json", "metrics.json"):
+            assert (rec / name / f).read_bytes() == (runs[name] / f).read_bytes()
+        full = json.loads((runs[name] / "history.json").read_text())
+        kept = json.loads((rec / name / "history.json").read_text())
+        assert kept.keys() == full.keys()
+        for key, values in full.items():
+            d = RECORD_DECIMALS.get(key)
+            assert kept[key] == ([round(v, d) for v in values] if d is not None else values)
+        assert json.loads((rec / name / "record.json").read_text())["source"] == str(runs[name])
+    assert (rec / "flat" / "flatness.json").read_bytes() == (flat / "flatness.json").read_bytes()
+    out = tmp_path / "figs"
+    rc, _, err = run_cli(["figures", rec / "fm", rec / "fm_noreinit", "--flatness", rec / "flat",
+                          "--out", out], capsys)
+    assert rc == 0, err
+    assert {p.name for p in out.iterdir()} == {"psnr_trajectories.png", "gaussians.png",
+                                               "flatness.png", "index.md"}
+    assert "no renders of" in (out / "index.md").read_text()
+    rc, stdout, err = run_cli(["table", rec / "fm", rec / "fm_noreinit", "--out", tmp_path / "t"],
+                              capsys)
+    assert rc == 0 and "fm[reinit=False]" in stdout
+
+
+def test_record_refuses_unfinished_runs_before_writing(fig_runs, tmp_path, capsys):
+    runs, _ = fig_runs
+    bad = tmp_path / "unfinished"
+    bad.mkdir()
+    (bad / "config.json").write_text((runs["fm"] / "config.json").read_text())
+    rec = tmp_path / "records"
+    rc, _, err = run_cli(["record", runs["fm"], bad, "--out", rec], capsys)
+    assert rc == 2 and "metrics.json" in err and "unfinished" in err
+    assert not rec.exists()                                   # nothing written on bad input
+    rc, _, err = run_cli(["record", tmp_path / "nope", "--out", rec], capsys)
+    assert rc == 2 and "not a folder" in err
