@@ -1,7 +1,7 @@
 """Where one training iteration's time goes, at a run's size (docs/performance.md, "Training").
 
     NUMBA_NUM_THREADS=1 python benchmarks/train_profile.py RUN_DIR [--method fm] [--from 9000]
-                                                           [--steps 30] [--top 25]
+                                [--steps 30] [--top 25] [--dtype float32] [--geometry float64]
 
 Loads the run's checkpoint (refgs train's own restore; the run directory is not changed), sets the
 iteration counter to ``--from`` (by default past densification, so the Gaussian count stays the
@@ -9,6 +9,9 @@ checkpoint's), optionally swaps the method (``--method fm`` profiles the flat-mi
 Gaussians of, say, a DropGaussian run), runs two warm-up iterations (compilation), then profiles
 ``--steps`` iterations with cProfile and prints the functions by own time and by cumulative time,
 as seconds per iteration.  Numba kernels appear as single calls (their time is their own).
+``--dtype float32`` casts the parameters and Adam's moments (what ``refgs train --dtype float32``
+trains in); ``--geometry float64`` renders with ``refgs.fast.render(..., geometry="float64")``
+(float32 compositing of a float64 per-Gaussian stage; fast backend, float32 only).
 """
 from __future__ import annotations
 
@@ -20,6 +23,7 @@ import warnings
 from pathlib import Path
 
 import numba
+import numpy as np
 
 from refgs.cli import _restore
 from refgs.train.trainer import get_method
@@ -32,6 +36,8 @@ def main() -> None:
     ap.add_argument("--from", dest="start", type=int, default=9000)
     ap.add_argument("--steps", type=int, default=30)
     ap.add_argument("--top", type=int, default=25)
+    ap.add_argument("--dtype", choices=("float32", "float64"), default=None)
+    ap.add_argument("--geometry", choices=("input", "float64"), default="input")
     args = ap.parse_args()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -39,6 +45,14 @@ def main() -> None:
     if args.method:
         trainer.method = get_method(args.method, {})
         trainer.method.setup(trainer)
+    if args.dtype:
+        dt = np.dtype(args.dtype)
+        for store in (trainer.params, trainer.adam.m, trainer.adam.v):
+            for k in store:
+                store[k] = store[k].astype(dt)
+    if args.geometry != "input":
+        from refgs import fast
+        trainer.backend.render = lambda g, cam, cfg: fast.render(g, cam, cfg, geometry=args.geometry)
     trainer.t = args.start
     for _ in range(2):
         trainer.step()
@@ -50,7 +64,8 @@ def main() -> None:
     prof.disable()
     wall = (time.perf_counter() - t0) / args.steps
     print(f"{args.run}: method {trainer.method.name}, "
-          f"{trainer.n} Gaussians, t = {args.start}..{trainer.t}, {numba.get_num_threads()} thread(s): "
+          f"{trainer.n} Gaussians, {trainer.params['means'].dtype}, geometry {args.geometry}, "
+          f"t = {args.start}..{trainer.t}, {numba.get_num_threads()} thread(s): "
           f"{wall:.3f} s per iteration (wall, profiled)")
     stats = pstats.Stats(prof)
     for key in ("tottime", "cumulative"):

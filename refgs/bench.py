@@ -244,7 +244,7 @@ def bench_scene(label, n, size, g64, cam, backends, repeats: int, profile: str) 
             from .fast.ties import find_ties
             ties = {k: find_ties(tie_src, tie_bands(k)) for k in keys}
     if "fast64" in outs:
-        res["pixel_gaussian_pairs"] = 256 * int(outs["fast64"][0].cache["lists"]["gauss"].size)
+        res["pixel_gaussian_pairs"] = 256 * int(outs["fast64"][0].cache["lists"]["full_size"])
     elif "ref64" in outs:
         res["pixel_gaussian_pairs"] = 256 * int(outs["ref64"][0].cache["lists"]["gauss"].size)
     refs = {}

@@ -257,6 +257,65 @@ def test_screen_is_exact():
                 np.testing.assert_array_equal(getattr(ga, k), getattr(gb, k), err_msg=k)
 
 
+def _needles(n, seed):
+    """Elongated, rotated Gaussians of every opacity around the 1/255 threshold (logits from
+    -8 to 4: o from 3e-4 to 0.98) in front of a 96x80 camera."""
+    rng = np.random.default_rng(seed)
+    cam = Camera.look_at((0, 0, -4.0), (0, 0, 0), fx=90, width=96, height=80)
+    ls = np.log(rng.uniform(0.005, 0.05, (n, 3)))
+    ls[:, 0] += np.log(rng.uniform(1, 150, n))                     # axis ratios up to 150
+    g = Gaussians(rng.uniform(-1.5, 1.5, (n, 3)) * [1, 0.9, 0.5], ls, rng.normal(size=(n, 4)),
+                  rng.uniform(-8, 4, n), rng.normal(size=(n, 1, 3)) * 0.5)
+    return g, cam
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_live_intersections_contain_every_slot_the_screen_keeps(dtype):
+    """refgs.fast.kernels.tile_alive is conservative: every (tile, slot) that the screen keeps in
+    some pixel row of the full tile lists is live, so the live lists change no output
+    (test_screen_is_exact); and it is tight: few live slots are not kept."""
+    from refgs.fast import kernels as rk
+    from refgs.fast.render import live_intersections
+    for seed in range(3):
+        g, cam = _needles(400, seed) if seed else benchmark_scene(600, 96, 80, seed=3)
+        g = g.astype(dtype)
+        full = fast.render(g, cam, screen=False)         # full lists, rows unscreened
+        c = full.cache
+        order = np.flatnonzero(full.visible)[np.argsort(full.depths[full.visible], kind="stable")]
+        eps = float(np.finfo(dtype).eps)
+        rect_off, live = live_intersections(order, c["tile_rect"], full.means2d, full.conics,
+                                            full.opacities, eps)
+        H, W = full.alpha.shape
+        gx, n_tiles = -(-W // 16), c["lists"]["offsets"].size - 1
+        gauss, offsets, pos = rk.build_tile_lists(order, c["tile_rect"], n_tiles, gx, rect_off,
+                                                  np.ones(live.size, np.bool_))
+        assert np.array_equal(gauss, c["lists"]["gauss"])     # the full lists, in depth order
+        # the exact screen's row lists on the full lists
+        dt = np.dtype(dtype)
+        img, al, dp, T = (np.empty(s, dt) for s in ((H, W, 3), (H, W), (H, W), (H, W)))
+        nc, last = np.empty((H, W), np.int32), np.empty((H, W), np.int32)
+        row_cnt = np.zeros((n_tiles, 16), np.int64)
+        row_slots = np.empty(16 * gauss.size, np.int32)
+        rk.composite_forward(0, n_tiles, gauss, offsets, pos, full.means2d, full.conics,
+                             full.opacities, full.colors, full.depths, c["bg"], c["rc"], eps, True,
+                             True, gx, img, al, dp, nc, last, T, row_cnt, row_slots)
+        # live bit of each full-list entry (tile t, position p): via the Gaussian's rectangle
+        where = {int(gi): k for k, gi in enumerate(order)}
+        kept = live_kept = 0
+        for t in range(n_tiles):
+            a, L = offsets[t], offsets[t + 1] - offsets[t]
+            rows = row_slots[16 * a:16 * (a + L)].reshape(16, L)
+            ty, tx = divmod(t, gx)
+            for s in {int(x) for r in range(16) for x in rows[r, :row_cnt[t, r]]}:
+                gi = int(gauss[a + s])
+                k = where[gi]
+                x0, x1, y0, _ = c["tile_rect"][gi]
+                kept += 1
+                assert live[rect_off[k] + (ty - y0) * (x1 - x0) + (tx - x0)], (seed, t, s)
+        live_kept = int(live.sum())
+        assert kept <= live_kept <= 1.1 * kept + 10, (kept, live_kept)
+
+
 # ---------------------------------------------------------------------------------------------
 # float32 against the float64 reference
 # ---------------------------------------------------------------------------------------------
@@ -314,8 +373,10 @@ def test_f32_benchmark_like_scene(profile, geometry):
 @pytest.mark.parametrize("profile", ["inria", "gsplat"])
 def test_f32_geometry_is_decided_in_float64(profile):
     """geometry="float64" (float32 compositing of float64 geometry): every per-Gaussian decision -- visibility,
-    radii, tile rectangles, depth order, so the tile lists -- is the float64 render's, and the
-    per-Gaussian outputs are the float64 ones rounded to float32."""
+    radii, tile rectangles, depth order, so the (full) tile lists -- is the float64 render's, and
+    the per-Gaussian outputs are the float64 ones rounded to float32.  (Which entries of the full
+    lists are live depends on the compositing values: each live entry must be the float64 full
+    list's entry at its recorded position.)"""
     g, cam = benchmark_scene(3000, 128, 96, seed=1)
     g64 = g.astype(np.float32).astype(np.float64)
     cfg = RenderConfig(profile=profile)
@@ -324,8 +385,13 @@ def test_f32_geometry_is_decided_in_float64(profile):
     np.testing.assert_array_equal(o32.visible, o64.visible)
     np.testing.assert_array_equal(o32.radii, o64.radii)
     np.testing.assert_array_equal(o32.cache["tile_rect"], o64.cache["tile_rect"])
-    for k in ("gauss", "offsets"):
-        np.testing.assert_array_equal(o32.cache["lists"][k], o64.cache["lists"][k])
+    full = fast.render(g64, cam, cfg, screen=False).cache["lists"]
+    live = o32.cache["lists"]
+    assert live["full_size"] == full["gauss"].size
+    for t in range(full["offsets"].size - 1):
+        f = full["gauss"][full["offsets"][t]:full["offsets"][t + 1]]
+        a, b = live["offsets"][t], live["offsets"][t + 1]
+        np.testing.assert_array_equal(live["gauss"][a:b], f[live["pos"][a:b]])
     for k in ("means2d", "conics", "depths", "colors", "opacities"):
         assert getattr(o32, k).dtype == np.float32
         np.testing.assert_array_equal(getattr(o32, k), getattr(o64, k).astype(np.float32), err_msg=k)
@@ -382,7 +448,19 @@ def test_parallel_pieces_give_the_sequential_result():
     np.minimum(rect[:, 1], 8, out=rect[:, 1])
     np.minimum(rect[:, 3], 6, out=rect[:, 3])
     expected_order = idx[np.argsort(depths[idx], kind="stable")]
-    gauss1, offsets1 = rk.build_tile_lists(expected_order, rect, 8 * 6, 8)
+    r = rect[expected_order]
+    rect_off = np.concatenate([[0], np.cumsum((r[:, 1] - r[:, 0]) * (r[:, 3] - r[:, 2]))])
+    live = rng.random(int(rect_off[-1])) < 0.7           # a live subset, as tile_alive gives
+    full_g, full_off, full_pos = rk.build_tile_lists(expected_order, rect, 8 * 6, 8, rect_off,
+                                                     np.ones(live.size, np.bool_))
+    gauss1, offsets1, pos1 = rk.build_tile_lists(expected_order, rect, 8 * 6, 8, rect_off, live)
+    # the live lists are the full lists filtered, each entry keeping its full-list position
+    for t in range(8 * 6):
+        fl = full_g[full_off[t]:full_off[t + 1]]
+        assert np.array_equal(full_pos[full_off[t]:full_off[t + 1]], np.arange(fl.size))
+        p = pos1[offsets1[t]:offsets1[t + 1]]
+        assert np.all(np.diff(p) > 0) and np.array_equal(fl[p], gauss1[offsets1[t]:offsets1[t + 1]])
+    assert gauss1.size == int(live.sum())
     contrib = rng.normal(size=(gauss1.size, rk.N_GRAD_COLUMNS))
     ref = np.zeros((n, rk.N_GRAD_COLUMNS))
     rk.reduce_by_gaussian(0, n, gauss1, contrib, ref)
@@ -391,8 +469,9 @@ def test_parallel_pieces_give_the_sequential_result():
         for nt in sorted({1, saved, min(2, numba.config.NUMBA_NUM_THREADS)}):
             numba.set_num_threads(nt)
             assert np.array_equal(depth_order(idx, depths), expected_order), nt
-            gauss, offsets = build_tile_lists(expected_order, rect, 8, 6)
+            gauss, offsets, pos = build_tile_lists(expected_order, rect, 8, 6, rect_off, live)
             assert np.array_equal(gauss, gauss1) and np.array_equal(offsets, offsets1), nt
+            assert np.array_equal(pos, pos1), nt
             out = np.zeros_like(ref)
             parallel_bands(rk.reduce_by_gaussian, n, gauss1, contrib, out)
             assert np.array_equal(out, ref), nt

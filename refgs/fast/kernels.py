@@ -6,7 +6,10 @@ loop of the spec instead of the reference's batched cumprod:
 * :func:`build_tile_lists` -- every tile's list of covering Gaussians sorted by depth, ties by
   Gaussian index (RAS-01, RAS-02): the visible Gaussians are sorted once (a stable argsort by
   depth, done by the caller) and dealt to the tiles of their rectangles in that order (a counting
-  sort), so each list comes out sorted.  O(N log N + P) for P intersections.
+  sort), so each list comes out sorted.  O(N log N + P) for P intersections.  Only *live*
+  intersections are dealt (:func:`tile_alive`: tiles where the screen below can keep the
+  Gaussian in some pixel row; on trained fern models 1/4 of the 3-sigma rectangles' tiles),
+  each with its position in the full list (``pos``), so n_contrib still counts the spec's lists.
 * :func:`composite_forward` -- over a range of tiles; every pixel sees its tile's list front to
   back: power (skip > 0), alpha = min(cap, o G) (skip < 1/255), the profile's stop rule on
   T (1 - alpha) with the saturating Gaussian not blended, colour / depth accumulation, T_final and
@@ -37,7 +40,11 @@ exactly as the spec says.  Non-positive-definite conics and non-finite values ge
 The compositing kernels keep, per row, the slots whose chord contains a pixel centre of the row
 (:func:`_row_lists`) and walk only those, in list order, all 16 lanes of the row at once (the
 lanes outside the chord fail the alpha test by the bound above; :func:`_chords` keeps the
-columns too, for refgs.fast.ties).  ``screen=False`` evaluates every (pixel, slot) pair; the outputs are bit-identical
+columns too, for refgs.fast.ties).  Before any tile is composited, :func:`tile_alive` applies the
+same bound per Gaussian and tile of its rectangle, conservatively (q at its largest over the
+rectangle, every bound widened), so a tile list leaves out only Gaussians the screen would skip
+in every row of that tile: no output changes, and the compositing no longer gathers and screens
+them (tests/test_fast.py::test_live_intersections_contain_every_slot_the_screen_keeps).  ``screen=False`` evaluates every (pixel, slot) pair; the outputs are bit-identical
 (tests/test_fast.py checks this).
 """
 from __future__ import annotations
@@ -104,46 +111,130 @@ def merge_runs(keys, a, b, out):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def tile_counts(lo, hi, order, rect, gx, counts):
-    """counts[t] = number of Gaussians of ``order`` whose tile rectangle holds tile t, for the
-    tiles of tile rows lo..hi (the first pass of :func:`build_tile_lists`)."""
-    for g in order:
-        for ty in range(max(lo, rect[g, 2]), min(hi, rect[g, 3])):
-            for tx in range(rect[g, 0], rect[g, 1]):
-                counts[ty * gx + tx] += 1
+def tile_counts(lo, hi, order, rect, rect_off, live, gx, counts):
+    """counts[t] = number of Gaussians of ``order`` whose tile rectangle holds tile t and that are
+    live there (``live``, :func:`tile_alive`), for the tiles of tile rows lo..hi (the first pass
+    of :func:`build_tile_lists`)."""
+    for k in range(order.size):
+        g = order[k]
+        x0, x1, y0 = rect[g, 0], rect[g, 1], rect[g, 2]
+        for ty in range(max(lo, y0), min(hi, rect[g, 3])):
+            base = rect_off[k] + (ty - y0) * (x1 - x0) - x0
+            for tx in range(x0, x1):
+                if live[base + tx]:
+                    counts[ty * gx + tx] += 1
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def tile_fill(lo, hi, order, rect, gx, cursor, gauss):
+def tile_fill(lo, hi, order, rect, rect_off, live, gx, cursor, full, gauss, pos):
     """The second pass for tile rows lo..hi: each Gaussian of ``order``, in that order, appended
-    to the lists of its tiles (cursor[t]: next free position of tile t's list)."""
-    for g in order:
-        for ty in range(max(lo, rect[g, 2]), min(hi, rect[g, 3])):
-            for tx in range(rect[g, 0], rect[g, 1]):
+    to the lists of the tiles where it is live (cursor[t]: next free position of tile t's list),
+    with pos = its position in the tile's full list (every Gaussian whose rectangle holds the
+    tile, live or not; full[t] counts them), which is what n_contrib reports (RAS-06)."""
+    for k in range(order.size):
+        g = order[k]
+        x0, x1, y0 = rect[g, 0], rect[g, 1], rect[g, 2]
+        for ty in range(max(lo, y0), min(hi, rect[g, 3])):
+            base = rect_off[k] + (ty - y0) * (x1 - x0) - x0
+            for tx in range(x0, x1):
                 t = ty * gx + tx
-                gauss[cursor[t]] = g
-                cursor[t] += 1
+                if live[base + tx]:
+                    gauss[cursor[t]] = g
+                    pos[cursor[t]] = full[t]
+                    cursor[t] += 1
+                full[t] += 1
+
+
+#: relative and absolute (pixels) widening of :func:`tile_alive`'s bounds: far above the
+#: float64 rounding of its own arithmetic and of the screen's (_F64_ULPS, _CHORD_PAD), so that
+#: its live set contains every slot the screen keeps; pixel centres are 1 px apart, so the
+#: widening costs nothing measurable.
+_LIVE_REL = 1e-9
+_LIVE_PAD = 1e-3
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def tile_alive(lo, hi, order, rect, rect_off, means2d, conics, opac, eps, live):
+    """For the Gaussians order[lo:hi]: live[rect_off[k] + (ty - y0) (x1 - x0) + (tx - x0)] for
+    each tile (tx, ty) of the rectangle of Gaussian order[k].
+
+    Conservative: a tile is live unless no pixel centre of it can lie inside the screen's
+    ellipse d^T conic d <= q (module docstring, Screen), with q taken at its largest over the
+    rectangle (the rounding term grows with the distance to the mean) and every bound widened by
+    _LIVE_REL / _LIVE_PAD; so every slot that :func:`_row_lists` keeps in some row is live, and a
+    slot that is not live has o G < 1/255 at every pixel centre of the tile: leaving it out of
+    the tile's list changes no output (the forward's screen then drops the live slots it does not
+    keep, as before).  Per tile row, the ellipse's x-range over the row's pixel-centre band is the
+    range of the chord ends mx + (B/A) dy +- sqrt(A q - det dy^2) / A, at their extremes
+    dy = +-B sqrt(q / (det C)) clamped to the band (d = mean - pixel, dy = my - py).  Odd or
+    non-finite conics are live everywhere (the screen's _ALL_ROWS)."""
+    T = TILE_SIZE
+    for k in range(lo, hi):
+        g = order[k]
+        rx0, rx1, ry0, ry1 = rect[g, 0], rect[g, 1], rect[g, 2], rect[g, 3]
+        base = rect_off[k]
+        w = rx1 - rx0
+        mx, my = np.float64(means2d[g, 0]), np.float64(means2d[g, 1])
+        A, B, C = np.float64(conics[g, 0]), np.float64(conics[g, 1]), np.float64(conics[g, 2])
+        o = np.float64(opac[g])
+        det = A * C - B * B
+        # q at its largest over the rectangle's pixel centres (the screen's q per tile is <= this)
+        dxm = max(abs(mx - (rx0 * T + 0.5)), abs(mx - (rx1 * T - 0.5)))
+        dym = max(abs(my - (ry0 * T + 0.5)), abs(my - (ry1 * T - 0.5)))
+        terms = abs(A) * dxm * dxm + abs(C) * dym * dym + 2.0 * abs(B) * dxm * dym
+        q = (_log_term(o) + SCREEN_ULPS * eps * terms + SCREEN_MARGIN) * (1.0 + _LIVE_REL) + _LIVE_REL
+        odd = not (A > 0.0 and C > 0.0 and det > 0.0 and math.isfinite(det) and math.isfinite(q)
+                   and math.isfinite(mx) and math.isfinite(my))
+        if odd or not (o > 0.0 and q > 0.0):
+            for i in range(base, base + w * (ry1 - ry0)):
+                live[i] = odd                            # o G < 1/255 everywhere when not odd
+            continue
+        ey = math.sqrt(q * A / det) * (1.0 + _LIVE_REL) + _LIVE_PAD       # |dy| on the ellipse
+        b_a = B / A
+        dys = B * math.sqrt(q / (det * C))               # where the chord's right end peaks
+        for ty in range(ry0, ry1):
+            row = base + (ty - ry0) * w - rx0
+            lo_dy = max(my - (ty * T + (T - 1) + 0.5), -ey)      # dy over the row band
+            hi_dy = min(my - (ty * T + 0.5), ey)
+            x_lo, x_hi = 1.0, 0.0                        # empty
+            if lo_dy <= hi_dy:
+                d1 = min(max(dys, lo_dy), hi_dy)
+                d2 = min(max(-dys, lo_dy), hi_dy)
+                h1 = math.sqrt(max(A * q - det * d1 * d1, 0.0)) / A
+                h2 = math.sqrt(max(A * q - det * d2 * d2, 0.0)) / A
+                x_hi = mx + b_a * d1 + h1
+                x_lo = mx + b_a * d2 - h2
+                pad = _LIVE_REL * (abs(mx) + abs(b_a) * ey + h1 + h2) + _LIVE_PAD
+                x_hi += pad
+                x_lo -= pad
+            for tx in range(rx0, rx1):
+                # the tile's pixel centres tx T + 0.5 .. tx T + 15.5 against [x_lo, x_hi]
+                live[row + tx] = (x_lo <= tx * T + (T - 1) + 0.5) & (x_hi >= tx * T + 0.5)
 
 
 @njit(cache=True, error_model="numpy")
-def build_tile_lists(order, rect, n_tiles, gx):
-    """Per-tile Gaussian lists in depth order (RAS-01, RAS-02).
+def build_tile_lists(order, rect, n_tiles, gx, rect_off, live):
+    """Per-tile Gaussian lists in depth order (RAS-01, RAS-02), of the live intersections.
 
     order (V,) int64: visible Gaussians sorted by (depth, index); rect (N,4) int64 (x0,x1,y0,y1),
-    max exclusive.  Returns (gauss (P,) int64, offsets (n_tiles+1,) int64): tile t's list is
-    gauss[offsets[t]:offsets[t+1]].  (refgs.fast.render runs the two passes over bands of tile
+    max exclusive; rect_off (V+1,) int64: start of order[k]'s rectangle in ``live`` (row-major),
+    live (rect_off[V],) bool (all True: the full lists of the spec).  Returns (gauss (P,) int64,
+    offsets (n_tiles+1,) int64, pos (P,) int32): tile t's list is gauss[offsets[t]:offsets[t+1]],
+    pos the positions in the full lists.  (refgs.fast.render runs the passes over bands of tile
     rows in parallel, with the same result.)
     """
     gy = n_tiles // gx
     counts = np.zeros(n_tiles, np.int64)
-    tile_counts(0, gy, order, rect, gx, counts)
+    tile_counts(0, gy, order, rect, rect_off, live, gx, counts)
     offsets = np.zeros(n_tiles + 1, np.int64)
     for t in range(n_tiles):
         offsets[t + 1] = offsets[t] + counts[t]
     cursor = offsets[:-1].copy()
+    full = np.zeros(n_tiles, np.int64)
     gauss = np.empty(offsets[n_tiles], np.int64)
-    tile_fill(0, gy, order, rect, gx, cursor, gauss)
-    return gauss, offsets
+    pos = np.empty(offsets[n_tiles], np.int32)
+    tile_fill(0, gy, order, rect, rect_off, live, gx, cursor, full, gauss, pos)
+    return gauss, offsets, pos
 
 
 @njit(cache=True, error_model="numpy")
@@ -185,27 +276,31 @@ _SKIP, _ALL_ROWS, _SCREENED = 0, 1, 2
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _slot_screen(tab, s, x0, x1, y0, y1, eps, screen):
-    """The screen's per-slot part (module docstring, Screen), shared by :func:`_chords` and
-    :func:`_row_lists`: (verdict, mx, my, A, B, C, det, q, r_lo, r_hi) in float64; verdict
-    _SKIP (o G < 1/255 in the whole tile), _ALL_ROWS (no screen: switched off, odd conic or
-    non-finite bound) or _SCREENED (rows r_lo..r_hi may hold a chord)."""
+def _log_term(o):
+    """2 ln(o / (1/255)), the opacity part of the screen's bound q (float64; -inf for o = 0)."""
+    return 2.0 * math.log(o / _ALPHA_MIN64)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _screen_values(mx, my, A, B, C, o, lg, x0, x1, y0, y1, eps, screen):
+    """The screen's per-slot part (module docstring, Screen) on float64 scalars (``lg`` =
+    :func:`_log_term` of o), shared by :func:`_chords`, :func:`_row_lists` and
+    :func:`tile_alive`: (verdict, det, q, r_lo, r_hi); verdict _SKIP (o G < 1/255 in the whole
+    tile), _ALL_ROWS (no screen: switched off, odd conic or non-finite bound) or _SCREENED (rows
+    r_lo..r_hi may hold a chord)."""
     T = TILE_SIZE
-    mx, my = np.float64(tab[s, 0]), np.float64(tab[s, 1])
-    A, B, C = np.float64(tab[s, 2]), np.float64(tab[s, 3]), np.float64(tab[s, 4])
-    o = np.float64(tab[s, 5])
     det = A * C - B * B
     if screen and o == 0.0:
-        return _SKIP, mx, my, A, B, C, det, 0.0, 0, -1   # alpha = 0 everywhere
+        return _SKIP, det, 0.0, 0, -1                   # alpha = 0 everywhere
     dxm = max(abs(mx - x0), abs(mx - x1))
     dym = max(abs(my - y0), abs(my - y1))
     terms = abs(A) * dxm * dxm + abs(C) * dym * dym + 2.0 * abs(B) * dxm * dym
-    q = 2.0 * math.log(o / _ALPHA_MIN64) + SCREEN_ULPS * eps * terms + SCREEN_MARGIN
+    q = lg + SCREEN_ULPS * eps * terms + SCREEN_MARGIN
     if not screen or not (A > 0.0 and C > 0.0 and det > 0.0 and math.isfinite(det)
                           and math.isfinite(q) and math.isfinite(mx) and math.isfinite(my)):
-        return _ALL_ROWS, mx, my, A, B, C, det, q, 0, T - 1
+        return _ALL_ROWS, det, q, 0, T - 1
     if not q > 0.0:
-        return _SKIP, mx, my, A, B, C, det, q, 0, -1     # o G < 1/255 everywhere
+        return _SKIP, det, q, 0, -1                     # o G < 1/255 everywhere
     # rows where the chord can be non-empty: dy^2 (det - F (AC + B^2)) <= A q (1 + F)
     den = det - _F64_ULPS * (A * C + B * B)
     r_lo, r_hi = 0, T - 1
@@ -214,10 +309,49 @@ def _slot_screen(tab, s, x0, x1, y0, y1, eps, screen):
         ylo = my - dy_max - y0
         yhi = my + dy_max - y0
         if yhi < 0.0 or ylo > T - 1.0:
-            return _SKIP, mx, my, A, B, C, det, q, 0, -1
+            return _SKIP, det, q, 0, -1
         r_lo = 0 if ylo <= 0.0 else int(math.ceil(ylo))
         r_hi = T - 1 if yhi >= T - 1.0 else int(math.floor(yhi))
-    return _SCREENED, mx, my, A, B, C, det, q, r_lo, r_hi
+    return _SCREENED, det, q, r_lo, r_hi
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _slot_screen(tab, s, x0, x1, y0, y1, eps, screen):
+    """:func:`_screen_values` of list slot s of a tile's table: (verdict, mx, my, A, B, C, det, q,
+    r_lo, r_hi) in float64."""
+    mx, my = np.float64(tab[s, 0]), np.float64(tab[s, 1])
+    A, B, C = np.float64(tab[s, 2]), np.float64(tab[s, 3]), np.float64(tab[s, 4])
+    o = np.float64(tab[s, 5])
+    verdict, det, q, r_lo, r_hi = _screen_values(mx, my, A, B, C, o, _log_term(o), x0, x1, y0, y1,
+                                                 eps, screen)
+    return verdict, mx, my, A, B, C, det, q, r_lo, r_hi
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _rows_keep(mx, my, A, B, C, det, q, x0, ys, r_lo, r_hi, keep):
+    """keep[r] (16,) = whether the screen's chord of row r (pixel centre ys[r]) holds a pixel
+    centre of the tile (columns x0 .. x0 + 15), for a _SCREENED slot; computed for all 16 rows at
+    once (vectorised), False outside r_lo..r_hi.  Shared by :func:`_row_lists` and
+    :func:`tile_alive`, so both take the same decisions."""
+    T = TILE_SIZE
+    top = T - 1.0
+    inv_a = 1.0 / A
+    b_a = B * inv_a
+    a_q = A * q
+    ac_b2 = A * C + B * B
+    for r in range(T):
+        dy = my - np.float64(ys[r])
+        dy2 = dy * dy
+        disc = a_q - det * dy2 + _F64_ULPS * (a_q + ac_b2 * dy2)
+        half = math.sqrt(0.0 if disc < 0.0 else disc) * inv_a
+        centre = mx + b_a * dy
+        pad = _F64_ULPS * (abs(b_a * dy) + half + abs(mx)) + _CHORD_PAD
+        plo = centre - half - pad - x0
+        phi = centre + half + pad - x0
+        p_lo = 0.0 if plo <= 0.0 else plo
+        p_hi = top if phi >= top else phi
+        has_centre = (plo != plo) | (phi != phi) | (math.ceil(p_lo) <= math.floor(p_hi))
+        keep[r] = (r >= r_lo) & (r <= r_hi) & (not (disc < 0.0)) & has_centre
 
 
 @njit(cache=True, error_model="numpy")
@@ -290,7 +424,6 @@ def _row_lists(tab, L, xs, ys, eps, screen, cnt, rs, keep):
     x1 = np.float64(xs[T - 1])
     y0 = np.float64(ys[0])
     y1 = np.float64(ys[T - 1])
-    top = T - 1.0
     for s in range(L):
         verdict, mx, my, A, B, C, det, q, r_lo, r_hi = _slot_screen(tab, s, x0, x1, y0, y1, eps,
                                                                    screen)
@@ -301,23 +434,7 @@ def _row_lists(tab, L, xs, ys, eps, screen, cnt, rs, keep):
                 rs[r, cnt[r]] = s
                 cnt[r] += 1
             continue
-        inv_a = 1.0 / A
-        b_a = B * inv_a
-        a_q = A * q
-        ac_b2 = A * C + B * B
-        for r in range(T):
-            dy = my - np.float64(ys[r])
-            dy2 = dy * dy
-            disc = a_q - det * dy2 + _F64_ULPS * (a_q + ac_b2 * dy2)
-            half = math.sqrt(0.0 if disc < 0.0 else disc) * inv_a
-            centre = mx + b_a * dy
-            pad = _F64_ULPS * (abs(b_a * dy) + half + abs(mx)) + _CHORD_PAD
-            plo = centre - half - pad - x0
-            phi = centre + half + pad - x0
-            p_lo = 0.0 if plo <= 0.0 else plo
-            p_hi = top if phi >= top else phi
-            has_centre = (plo != plo) | (phi != phi) | (math.ceil(p_lo) <= math.floor(p_hi))
-            keep[r] = (r >= r_lo) & (r <= r_hi) & (not (disc < 0.0)) & has_centre
+        _rows_keep(mx, my, A, B, C, det, q, x0, ys, r_lo, r_hi, keep)
         for r in range(r_lo, r_hi + 1):
             if keep[r]:
                 rs[r, cnt[r]] = s
@@ -341,15 +458,17 @@ def _centres(origin, like):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def composite_forward(lo, hi, gauss, offsets, means2d, conics, opac, colors, depths, bg, rc, eps,
-                      stop_inclusive, screen, gx, image, alpha_img, depth_img, n_contrib, final_T,
-                      row_cnt, row_slots):
+def composite_forward(lo, hi, gauss, offsets, pos, means2d, conics, opac, colors, depths, bg, rc,
+                      eps, stop_inclusive, screen, gx, image, alpha_img, depth_img, n_contrib,
+                      last_img, final_T, row_cnt, row_slots):
     """Front-to-back compositing (RAS-03..RAS-06) of the pixels of tiles [lo, hi).
 
-    gauss/offsets from :func:`build_tile_lists`; per-Gaussian means2d (N,2), conics (N,3),
+    gauss/offsets/pos from :func:`build_tile_lists`; per-Gaussian means2d (N,2), conics (N,3),
     opac (N,), colors (N,3), depths (N,); bg (3,), rc the R_* constants, eps the dtype's machine
     epsilon (float64); outputs image (H,W,3), alpha_img / depth_img / final_T (H,W) in D,
-    n_contrib (H,W) int32, written for these tiles only.  The screen's row lists are kept for the
+    n_contrib (H,W) int32 (1-based position in the full tile list, RAS-06, through ``pos``) and
+    last_img (H,W) int32 (the same in the live list, for the backward), written for these tiles
+    only.  The screen's row lists are kept for the
     backward: row_cnt (n_tiles, 16) int64 and, for tile t with list length L, row_slots (16 P,)
     int32 holds its (16, L) table at [16 offsets[t], 16 offsets[t+1]).
     """
@@ -429,13 +548,15 @@ def composite_forward(lo, hi, gauss, offsets, means2d, conics, opac, colors, dep
                 image[i, j, 2] = st[_S_B + c] + Tc * bg[2]
                 alpha_img[i, j] = one - Tc
                 depth_img[i, j] = st[_S_Z + c]
-                n_contrib[i, j] = last[c]
+                lc = last[c]
+                last_img[i, j] = lc
+                n_contrib[i, j] = pos[start + lc - 1] + 1 if lc > 0 else 0
                 final_T[i, j] = Tc
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def composite_backward(lo, hi, gauss, offsets, means2d, conics, opac, colors, depths, bg, rc,
-                       grad_through_cap, gx, n_contrib, final_T, v_image, v_alpha, v_depth,
+                       grad_through_cap, gx, last_img, final_T, v_image, v_alpha, v_depth,
                        row_cnt, row_slots, contrib):
     """Backward of :func:`composite_forward` (RAS-07, RAS-08, RAS-10) for tiles [lo, hi).
 
@@ -454,7 +575,7 @@ def composite_backward(lo, hi, gauss, offsets, means2d, conics, opac, colors, de
     rounded 1 - a_i, so each step adds about three roundings: relative error <~ 3 n eps after n
     fragments -- ~1e-14 in float64, and in float32 ~2e-5 at worst for the ~100 fragments of a
     saturated pixel, typically far less because the roundings do not all add up).  The row lists are the
-    forward's (row_cnt, row_slots).
+    forward's (row_cnt, row_slots), last_img its live-list n_contrib.
     Writes contrib (P, 10): row offsets[t] + s = the sum over tile t's pixels for list slot s
     (in the fixed lane-pair order of the module docstring), columns G_* (means2d x, y; conic A, B,
     C; opacity; colour r, g, b; depth).
@@ -493,7 +614,7 @@ def composite_backward(lo, hi, gauss, offsets, means2d, conics, opac, colors, de
             for c in range(TILE_SIZE):
                 if c < ncols:
                     j = tx * TILE_SIZE + c
-                    last[c] = n_contrib[i, j]
+                    last[c] = last_img[i, j]
                     max_last = max(max_last, last[c])
                     Tf = final_T[i, j]
                     vr, vg, vb, vz = v_image[i, j, 0], v_image[i, j, 1], v_image[i, j, 2], v_depth[i, j]

@@ -3,8 +3,9 @@
 Stages (the same as refgs.render, clause ids there):
 
     validate_inputs (numpy, O(N))  ->  gaussians_forward (covariance, projection, SH; per Gaussian)
-    -> stable depth sort (numpy, parts on the threads, merged: depth_order) + build_tile_lists
-       (counting sort, bands of tile rows on the threads)
+    -> stable depth sort (numpy, parts on the threads, merged: depth_order)
+    -> live_intersections (the screen per Gaussian and tile of its rectangle, on the threads)
+       + build_tile_lists (counting sort of the live ones, bands of tile rows on the threads)
     -> composite_forward (per tile)
 
 and backward
@@ -113,18 +114,45 @@ def depth_order(idx, depths) -> np.ndarray:
     return idx[parts[0]]
 
 
-def build_tile_lists(order, rect, gx: int, gy: int):
+def live_intersections(order, rect, means2d, conics, opac, eps: float, screen: bool = True):
+    """(rect_off (V+1,) int64, live (P_full,) bool): for each visible Gaussian order[k] and each
+    tile of its rectangle (row-major, from rect_off[k]) whether the screen keeps it in some pixel
+    row there (refgs.fast.kernels.tile_alive, per Gaussian on the threads); all True without
+    the screen (``screen=False``: the spec's full lists)."""
+    r = rect[order]
+    sizes = np.maximum(r[:, 1] - r[:, 0], 0) * np.maximum(r[:, 3] - r[:, 2], 0)
+    rect_off = np.zeros(order.size + 1, np.int64)
+    np.cumsum(sizes, out=rect_off[1:])
+    if not screen:
+        return rect_off, np.ones(int(rect_off[-1]), np.bool_)
+    live = np.empty(int(rect_off[-1]), np.bool_)
+    parallel_for(rk.tile_alive, order.size, order, rect, rect_off, means2d, conics, opac,
+                 float(eps), live, min_chunk=MIN_GAUSSIAN_CHUNK // 8)
+    return rect_off, live
+
+
+def build_tile_lists(order, rect, gx: int, gy: int, rect_off=None, live=None):
     """refgs.fast.kernels.build_tile_lists (RAS-01, RAS-02) with both passes split into bands of
     tile rows over the threads; each band takes the Gaussians in ``order``, so the lists are the
-    same as the sequential ones.  Returns (gauss (P,) int64, offsets (gx gy + 1,) int64)."""
+    same as the sequential ones.  ``rect_off``/``live`` from :func:`live_intersections` (default:
+    every intersection, the full lists).  Returns (gauss (P,) int64, offsets (gx gy + 1,) int64,
+    pos (P,) int32: each entry's position in its tile's full list)."""
+    if live is None:
+        r = rect[order]
+        sizes = np.maximum(r[:, 1] - r[:, 0], 0) * np.maximum(r[:, 3] - r[:, 2], 0)
+        rect_off = np.zeros(order.size + 1, np.int64)
+        np.cumsum(sizes, out=rect_off[1:])
+        live = np.ones(int(rect_off[-1]), np.bool_)
     counts = np.zeros(gx * gy, np.int64)
-    parallel_bands(rk.tile_counts, gy, order, rect, gx, counts)
+    parallel_bands(rk.tile_counts, gy, order, rect, rect_off, live, gx, counts)
     offsets = np.zeros(gx * gy + 1, np.int64)
     np.cumsum(counts, out=offsets[1:])
     cursor = offsets[:-1].copy()
+    full = np.zeros(gx * gy, np.int64)
     gauss = np.empty(int(offsets[-1]), np.int64)
-    parallel_bands(rk.tile_fill, gy, order, rect, gx, cursor, gauss)
-    return gauss, offsets
+    pos = np.empty(int(offsets[-1]), np.int32)
+    parallel_bands(rk.tile_fill, gy, order, rect, rect_off, live, gx, cursor, full, gauss, pos)
+    return gauss, offsets, pos
 
 
 def _c(a, dt):
@@ -177,27 +205,31 @@ def render(gaussians, camera, config: RenderConfig | None = None, *,
 
     gx, gy = tile_grid(W, H)
     order = depth_order(np.flatnonzero(visible), depths)          # RAS-02: depth, ties by index
-    gauss, offsets = build_tile_lists(order, rect, gx, gy)
 
     conics_g = conics                              # the per-Gaussian stage's, for the backward
     if out_dt != dt:                               # float32 compositing of float64 geometry
         means2d, cov2d, conics = means2d.astype(out_dt), cov2d.astype(out_dt), conics.astype(out_dt)
         depths, opac, colors = depths.astype(out_dt), opac.astype(out_dt), colors.astype(out_dt)
     dt = out_dt
+    eps = float(np.finfo(dt).eps)
+    # the tile lists keep only the Gaussians the screen keeps in some row of a tile (live
+    # intersections; module docstring of refgs.fast.kernels), n_contrib still counts full lists
+    rect_off, live = live_intersections(order, rect, means2d, conics, opac, eps, screen)
+    gauss, offsets, pos = build_tile_lists(order, rect, gx, gy, rect_off, live)
     bg = np.asarray(config.background, dt)
     rc = _raster_constants(dt, profile)
     image = np.empty((H, W, 3), dt)
     alpha, depth, final_T = np.empty((H, W), dt), np.empty((H, W), dt), np.empty((H, W), dt)
-    n_contrib = np.empty((H, W), np.int32)
-    eps = float(np.finfo(dt).eps)
+    n_contrib, last = np.empty((H, W), np.int32), np.empty((H, W), np.int32)
     row_cnt = np.zeros((gx * gy, TILE_SIZE), np.int64)
     row_slots = np.empty(TILE_SIZE * gauss.size, np.int32)
-    parallel_for(rk.composite_forward, gx * gy, gauss, offsets, means2d, conics, opac, colors, depths,
-                 bg, rc, eps, bool(profile.stop_inclusive), bool(screen), gx, image, alpha, depth,
-                 n_contrib, final_T, row_cnt, row_slots)
+    parallel_for(rk.composite_forward, gx * gy, gauss, offsets, pos, means2d, conics, opac, colors,
+                 depths, bg, rc, eps, bool(profile.stop_inclusive), bool(screen), gx, image, alpha,
+                 depth, n_contrib, last, final_T, row_cnt, row_slots)
     cache = {"tag": CACHE_TAG, "profile": profile, "sh_degree": deg,
-             "lists": {"gauss": gauss, "offsets": offsets}, "tile_rect": rect,
-             "rows": (row_cnt, row_slots),
+             "lists": {"gauss": gauss, "offsets": offsets, "pos": pos,
+                       "full_size": int(live.size)},
+             "tile_rect": rect, "last": last, "rows": (row_cnt, row_slots),
              "arrays": (means, log_scales, quats, logits, oscale, sh, w2c, campos),
              "cst": cst, "flags": flags, "rc": rc, "bg": bg, "screen": bool(screen),
              "comp": comp, "o_sig": o_sig, "clamped": clamped, "scale": oscale,
@@ -235,7 +267,7 @@ def render_backward(out: RenderOutput, v_image, v_alpha=None, v_depth=None) -> G
     contrib = np.empty((gauss.size, rk.N_GRAD_COLUMNS), dt)
     parallel_for(rk.composite_backward, gx * gy, gauss, offsets, out.means2d, out.conics,
                  out.opacities, out.colors, out.depths, c["bg"], c["rc"],
-                 bool(profile.grad_through_alpha_cap), gx, out.n_contrib, out.final_T,
+                 bool(profile.grad_through_alpha_cap), gx, c["last"], out.final_T,
                  v_image, v_alpha, v_depth, *c["rows"], contrib)
     means, log_scales, quats, logits, oscale, sh, w2c, campos = c["arrays"]
     gdt = means.dtype                       # the per-Gaussian stage's precision (render geometry)
