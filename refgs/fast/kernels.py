@@ -145,6 +145,16 @@ def tile_fill(lo, hi, order, rect, rect_off, live, gx, cursor, full, gauss, pos)
                 full[t] += 1
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def rect_offsets(order, rect, out):
+    """out (V+1,) = prefix sums of the tile counts of the rectangles of order's Gaussians: where
+    each rectangle's tiles start in the per-intersection ``live`` array (row-major)."""
+    out[0] = 0
+    for k in range(order.size):
+        g = order[k]
+        out[k + 1] = out[k] + max(rect[g, 1] - rect[g, 0], 0) * max(rect[g, 3] - rect[g, 2], 0)
+
+
 #: relative and absolute (pixels) widening of :func:`tile_alive`'s bounds: far above the
 #: float64 rounding of its own arithmetic and of the screen's (_F64_ULPS, _CHORD_PAD), so that
 #: its live set contains every slot the screen keeps; pixel centres are 1 px apart, so the

@@ -119,10 +119,8 @@ def live_intersections(order, rect, means2d, conics, opac, eps: float, screen: b
     tile of its rectangle (row-major, from rect_off[k]) whether the screen keeps it in some pixel
     row there (refgs.fast.kernels.tile_alive, per Gaussian on the threads); all True without
     the screen (``screen=False``: the spec's full lists)."""
-    r = rect[order]
-    sizes = np.maximum(r[:, 1] - r[:, 0], 0) * np.maximum(r[:, 3] - r[:, 2], 0)
-    rect_off = np.zeros(order.size + 1, np.int64)
-    np.cumsum(sizes, out=rect_off[1:])
+    rect_off = np.empty(order.size + 1, np.int64)
+    rk.rect_offsets(order, rect, rect_off)
     if not screen:
         return rect_off, np.ones(int(rect_off[-1]), np.bool_)
     live = np.empty(int(rect_off[-1]), np.bool_)
@@ -138,10 +136,8 @@ def build_tile_lists(order, rect, gx: int, gy: int, rect_off=None, live=None):
     every intersection, the full lists).  Returns (gauss (P,) int64, offsets (gx gy + 1,) int64,
     pos (P,) int32: each entry's position in its tile's full list)."""
     if live is None:
-        r = rect[order]
-        sizes = np.maximum(r[:, 1] - r[:, 0], 0) * np.maximum(r[:, 3] - r[:, 2], 0)
-        rect_off = np.zeros(order.size + 1, np.int64)
-        np.cumsum(sizes, out=rect_off[1:])
+        rect_off = np.empty(order.size + 1, np.int64)
+        rk.rect_offsets(order, rect, rect_off)
         live = np.ones(int(rect_off[-1]), np.bool_)
     counts = np.zeros(gx * gy, np.int64)
     parallel_bands(rk.tile_counts, gy, order, rect, rect_off, live, gx, counts)
