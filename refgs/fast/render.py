@@ -114,16 +114,21 @@ def depth_order(idx, depths) -> np.ndarray:
     return idx[parts[0]]
 
 
-def live_intersections(order, rect, means2d, conics, opac, eps: float, screen: bool = True):
-    """(rect_off (V+1,) int64, live (P_full,) bool): for each visible Gaussian order[k] and each
-    tile of its rectangle (row-major, from rect_off[k]) whether the screen keeps it in some pixel
-    row there (refgs.fast.kernels.tile_alive, per Gaussian on the threads); all True without
-    the screen (``screen=False``: the spec's full lists)."""
+def _every_intersection(order, rect):
+    """(rect_off, live) of the full lists: every tile of every rectangle live."""
     rect_off = np.empty(order.size + 1, np.int64)
     rk.rect_offsets(order, rect, rect_off)
+    return rect_off, np.ones(int(rect_off[-1]), np.bool_)
+
+
+def live_intersections(order, rect, means2d, conics, opac, eps: float, screen: bool = True):
+    """(rect_off (V+1,) int64, live (P_full,) bool): for each visible Gaussian order[k] and each
+    tile of its rectangle (row-major, from rect_off[k]) whether the screen may keep it in some
+    pixel row there (refgs.fast.kernels.tile_alive, conservative, per Gaussian on the threads);
+    all True without the screen (``screen=False``: the spec's full lists)."""
+    rect_off, live = _every_intersection(order, rect)
     if not screen:
-        return rect_off, np.ones(int(rect_off[-1]), np.bool_)
-    live = np.empty(int(rect_off[-1]), np.bool_)
+        return rect_off, live
     parallel_for(rk.tile_alive, order.size, order, rect, rect_off, means2d, conics, opac,
                  float(eps), live, min_chunk=MIN_GAUSSIAN_CHUNK // 8)
     return rect_off, live
@@ -136,9 +141,7 @@ def build_tile_lists(order, rect, gx: int, gy: int, rect_off=None, live=None):
     every intersection, the full lists).  Returns (gauss (P,) int64, offsets (gx gy + 1,) int64,
     pos (P,) int32: each entry's position in its tile's full list)."""
     if live is None:
-        rect_off = np.empty(order.size + 1, np.int64)
-        rk.rect_offsets(order, rect, rect_off)
-        live = np.ones(int(rect_off[-1]), np.bool_)
+        rect_off, live = _every_intersection(order, rect)
     counts = np.zeros(gx * gy, np.int64)
     parallel_bands(rk.tile_counts, gy, order, rect, rect_off, live, gx, counts)
     offsets = np.zeros(gx * gy + 1, np.int64)
