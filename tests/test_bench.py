@@ -26,6 +26,8 @@ def test_bench_small_scenes(tmp_path, capsys):
         assert b["fast64"]["image_max_abs"] < 1e-12 and b["fast64"]["grad_rel_l2"] < 1e-10
         assert b["fast32"]["image_max_abs"] < 1e-5 and b["fast32"]["grad_rel_l2"] < 1e-4
         assert b["fast32"]["tie_pixels"] >= 0 and b["fast64"]["tie_pixels"] == 0
+        assert b["fast32"]["image_max_abs_all"] >= b["fast32"]["image_max_abs"]
+        assert np.isfinite(b["fast32"]["grad_rel_l2_unmasked"]) and "image_max_abs_all" not in b["fast64"]
         assert b["ref64"]["speedup_vs_ref64"] == 1.0 and "image_max_abs" not in b["ref64"]
         assert r["pixel_gaussian_pairs"] > 0
     assert set(doc["growth_exponents"]) == {"ref64", "fast64", "fast32"}
@@ -106,7 +108,14 @@ def test_targets_are_judged_and_json_ready():
     t = bench.targets([row])
     assert t["fast32g"]["speedup_ok"] is True and t["fast32g"]["ties_ok"] is True
     assert t["speedup_ok"] is False                       # fast32's own row unchanged
+    assert t["no_exclusion_needed"] is False              # not measured: not claimed
     _json.dumps(t, allow_nan=False)
+    # within the bounds at every pixel and for the unmasked gradients: nothing needed excluding
+    row["backends"]["fast32g"].update(image_max_abs_all=np.float64(6e-7),
+                                      grad_rel_l2_unmasked=np.float64(7e-7))
+    assert bench.targets([row])["fast32g"]["no_exclusion_needed"] is True
+    row["backends"]["fast32g"]["image_max_abs_all"] = np.float64(8e-4)
+    assert bench.targets([row])["fast32g"]["no_exclusion_needed"] is False
 
 
 def test_fast32g_row_uses_geometry64_bands(tmp_path):

@@ -83,6 +83,8 @@ _B_T, _B_SUF, _B_TAIL, _B_VR, _B_VG, _B_VB, _B_VZ = (k * TILE_SIZE for k in rang
 _N_BSTATE = 7
 _HALF = TILE_SIZE // 2
 _NT_HALF = N_GRAD_COLUMNS * _HALF
+#: columns of a tile's per-slot table (:func:`_gather`)
+N_TAB = 12
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -249,12 +251,20 @@ def build_tile_lists(order, rect, n_tiles, gx, rect_off, live):
 
 @njit(cache=True, error_model="numpy")
 def _gather(gauss, start, L, means2d, conics, opac, colors, depths, tab):
-    """The tile's list as a contiguous per-slot table tab[:L] (dtype D): mx, my, A, B, C, o,
-    r, g, b, z."""
+    """The tile's list as a contiguous per-slot table tab[:L] (dtype D, N_TAB columns): mx, my,
+    A, B, C, o, r, g, b, z, then the residuals mx - D(mx), my - D(my) of the 2D mean.
+
+    means2d is in D, or float64 for float32 compositing of float64 geometry (Mixed precision):
+    the mean is then carried as D(m) + D(m - D(m)), about 2 x 24 bits, so that the pixel offset
+    d = (mx - px) + residual is accurate to a few ulps of d itself rather than to an ulp of the
+    absolute coordinate (~3e-5 px at 500 px in float32).  A mean already in D has residual 0,
+    and x + 0 = x: the same results bit for bit."""
     for s in range(L):
         g = gauss[start + s]
-        tab[s, 0] = means2d[g, 0]
+        tab[s, 0] = means2d[g, 0]                  # rounded to D on the store
         tab[s, 1] = means2d[g, 1]
+        tab[s, 10] = means2d[g, 0] - tab[s, 0]     # exact in float64, then rounded to D
+        tab[s, 11] = means2d[g, 1] - tab[s, 1]
         tab[s, 2] = conics[g, 0]
         tab[s, 3] = conics[g, 1]
         tab[s, 4] = conics[g, 2]
@@ -329,7 +339,8 @@ def _screen_values(mx, my, A, B, C, o, lg, x0, x1, y0, y1, eps, screen):
 def _slot_screen(tab, s, x0, x1, y0, y1, eps, screen):
     """:func:`_screen_values` of list slot s of a tile's table: (verdict, mx, my, A, B, C, det, q,
     r_lo, r_hi) in float64."""
-    mx, my = np.float64(tab[s, 0]), np.float64(tab[s, 1])
+    mx = np.float64(tab[s, 0]) + np.float64(tab[s, 10])     # the mean the lanes see
+    my = np.float64(tab[s, 1]) + np.float64(tab[s, 11])
     A, B, C = np.float64(tab[s, 2]), np.float64(tab[s, 3]), np.float64(tab[s, 4])
     o = np.float64(tab[s, 5])
     verdict, det, q, r_lo, r_hi = _screen_values(mx, my, A, B, C, o, _log_term(o), x0, x1, y0, y1,
@@ -485,9 +496,9 @@ def composite_forward(lo, hi, gauss, offsets, pos, means2d, conics, opac, colors
     H, W = alpha_img.shape
     one, zero, t_min = rc[R_ONE], rc[R_ZERO], rc[R_T_MIN]
     neg_half, cap, amin = rc[R_NEG_HALF], rc[R_CAP], rc[R_ALPHA_MIN]
-    dt = means2d.dtype
+    dt = conics.dtype                       # the compositing dtype (means2d may be float64)
     Lm = _max_len(offsets, lo, hi)
-    tab = np.empty((Lm, 10), dt)
+    tab = np.empty((Lm, N_TAB), dt)
     # per pixel of the row: T, colour r, g, b, depth, done (1 / 0) at lane offsets _S_* (one
     # array, fixed offsets, so that LLVM can vectorise the lane loop)
     st = np.empty(_N_STATE * TILE_SIZE, dt)
@@ -520,8 +531,8 @@ def composite_forward(lo, hi, gauss, offsets, pos, means2d, conics, opac, colors
             n_done = TILE_SIZE - ncols
             for k in range(cnt[r]):
                 s = rs[r, k]
-                mx, A, B, o = tab[s, 0], tab[s, 2], tab[s, 3], tab[s, 5]
-                dy = tab[s, 1] - py
+                mx, A, B, o, lx = tab[s, 0], tab[s, 2], tab[s, 3], tab[s, 5], tab[s, 10]
+                dy = (tab[s, 1] - py) + tab[s, 11]
                 Cdy2 = tab[s, 4] * dy * dy
                 cr, cg, cb, z = tab[s, 6], tab[s, 7], tab[s, 8], tab[s, 9]
                 slot = np.int32(s + 1)
@@ -530,7 +541,7 @@ def composite_forward(lo, hi, gauss, offsets, pos, means2d, conics, opac, colors
                 # of the spec does: skip when done, power > 0 (RAS-03) or alpha < 1/255
                 # (RAS-04); stop without blending (RAS-05); else blend
                 for c in range(TILE_SIZE):
-                    power = _power(A, B, Cdy2, mx - xs[c], dy, neg_half)
+                    power = _power(A, B, Cdy2, (mx - xs[c]) + lx, dy, neg_half)
                     a = min(cap, o * fast_exp(power))
                     Tc = st[_S_T + c]
                     test_T = Tc * (one - a)
@@ -593,9 +604,9 @@ def composite_backward(lo, hi, gauss, offsets, means2d, conics, opac, colors, de
     H, W = final_T.shape
     one, zero, neg_half, cap = rc[R_ONE], rc[R_ZERO], rc[R_NEG_HALF], rc[R_CAP]
     amin = rc[R_ALPHA_MIN]
-    dt = means2d.dtype
+    dt = conics.dtype                       # the compositing dtype (means2d may be float64)
     Lm = _max_len(offsets, lo, hi)
-    tab = np.empty((Lm, 10), dt)
+    tab = np.empty((Lm, N_TAB), dt)
     # per list slot, gradient field and lane pair (c, c + 8): partial sums over the tile's rows,
     # reduced over the 8 lane pairs in a fixed order when the tile is done
     acc = np.empty(Lm * _NT_HALF, dt)
@@ -641,7 +652,8 @@ def composite_backward(lo, hi, gauss, offsets, means2d, conics, opac, colors, de
                 if s >= max_last:
                     continue
                 mx, A, B, C, o = tab[s, 0], tab[s, 2], tab[s, 3], tab[s, 4], tab[s, 5]
-                dy = tab[s, 1] - py
+                lx = tab[s, 10]
+                dy = (tab[s, 1] - py) + tab[s, 11]
                 Cdy2 = C * dy * dy
                 cr, cg, cb, z = tab[s, 6], tab[s, 7], tab[s, 8], tab[s, 9]
                 s32 = np.int32(s)
@@ -649,7 +661,7 @@ def composite_backward(lo, hi, gauss, offsets, means2d, conics, opac, colors, de
                 # back-to-front walk: only fragments the forward blended (s < last, power <= 0,
                 # alpha >= 1/255) change T and the suffix sum or contribute
                 for c in range(TILE_SIZE):
-                    dx = mx - xs[c]
+                    dx = (mx - xs[c]) + lx
                     power = _power(A, B, Cdy2, dx, dy, neg_half)
                     G = fast_exp(power)
                     oG = o * G

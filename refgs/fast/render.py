@@ -52,8 +52,9 @@ MIN_PARALLEL_SORT = 16384
 #: rectangles, depths and so the depth order) for float32 Gaussians: "input" (default, CNV-11:
 #: everything in the Gaussians' dtype, a model of a float32 GPU backend) or "float64" (an
 #: explicit mixed precision: that stage in float64, its outputs rounded to float32 for the
-#: compositing, so every per-Gaussian decision is the float64 one -- no geometric or depth-order
-#: near-ties; docs/fast.md "Mixed precision").  Float64 Gaussians: float64 either way.
+#: compositing -- except the 2D means, which the compositing carries as float32 value + float32
+#: residual -- so every per-Gaussian decision is the float64 one and pixel offsets keep float64's
+#: position: no geometric or depth-order near-ties; docs/fast.md "Mixed precision").  Float64 Gaussians: float64 either way.
 GEOMETRY_PRECISIONS = ("input", "float64")
 
 _pool_lock = threading.Lock()
@@ -206,6 +207,10 @@ def render(gaussians, camera, config: RenderConfig | None = None, *,
     order = depth_order(np.flatnonzero(visible), depths)          # RAS-02: depth, ties by index
 
     conics_g = conics                              # the per-Gaussian stage's, for the backward
+    # the compositing kernels read the 2D means in the geometry's precision: a float64 mean is
+    # carried there as float32 value + float32 residual (refgs.fast.kernels._gather), so pixel
+    # offsets keep float64's position (docs/fast.md, "Mixed precision")
+    means2d_c = means2d
     if out_dt != dt:                               # float32 compositing of float64 geometry
         means2d, cov2d, conics = means2d.astype(out_dt), cov2d.astype(out_dt), conics.astype(out_dt)
         depths, opac, colors = depths.astype(out_dt), opac.astype(out_dt), colors.astype(out_dt)
@@ -213,7 +218,7 @@ def render(gaussians, camera, config: RenderConfig | None = None, *,
     eps = float(np.finfo(dt).eps)
     # the tile lists keep only the Gaussians the screen keeps in some row of a tile (live
     # intersections; module docstring of refgs.fast.kernels), n_contrib still counts full lists
-    rect_off, live = live_intersections(order, rect, means2d, conics, opac, eps, screen)
+    rect_off, live = live_intersections(order, rect, means2d_c, conics, opac, eps, screen)
     gauss, offsets, pos = build_tile_lists(order, rect, gx, gy, rect_off, live)
     bg = np.asarray(config.background, dt)
     rc = _raster_constants(dt, profile)
@@ -222,7 +227,7 @@ def render(gaussians, camera, config: RenderConfig | None = None, *,
     n_contrib, last = np.empty((H, W), np.int32), np.empty((H, W), np.int32)
     row_cnt = np.zeros((gx * gy, TILE_SIZE), np.int64)
     row_slots = np.empty(TILE_SIZE * gauss.size, np.int32)
-    parallel_for(rk.composite_forward, gx * gy, gauss, offsets, pos, means2d, conics, opac, colors,
+    parallel_for(rk.composite_forward, gx * gy, gauss, offsets, pos, means2d_c, conics, opac, colors,
                  depths, bg, rc, eps, bool(profile.stop_inclusive), bool(screen), gx, image, alpha,
                  depth, n_contrib, last, final_T, row_cnt, row_slots)
     cache = {"tag": CACHE_TAG, "profile": profile, "sh_degree": deg,
@@ -232,7 +237,7 @@ def render(gaussians, camera, config: RenderConfig | None = None, *,
              "arrays": (means, log_scales, quats, logits, oscale, sh, w2c, campos),
              "cst": cst, "flags": flags, "rc": rc, "bg": bg, "screen": bool(screen),
              "comp": comp, "o_sig": o_sig, "clamped": clamped, "scale": oscale,
-             "conics_geometry": conics_g, "geometry": geometry}
+             "conics_geometry": conics_g, "means2d_compositing": means2d_c, "geometry": geometry}
     return RenderOutput(image=image, alpha=alpha, depth=depth, n_contrib=n_contrib, radii=radii,
                         means2d=means2d, depths=depths, conics=conics, cov2d=cov2d, colors=colors,
                         opacities=opac, final_T=final_T, visible=visible, gaussians=g,
@@ -264,7 +269,7 @@ def render_backward(out: RenderOutput, v_image, v_alpha=None, v_depth=None) -> G
     n = out.means2d.shape[0]
 
     contrib = np.empty((gauss.size, rk.N_GRAD_COLUMNS), dt)
-    parallel_for(rk.composite_backward, gx * gy, gauss, offsets, out.means2d, out.conics,
+    parallel_for(rk.composite_backward, gx * gy, gauss, offsets, c["means2d_compositing"], out.conics,
                  out.opacities, out.colors, out.depths, c["bg"], c["rc"],
                  bool(profile.grad_through_alpha_cap), gx, c["last"], out.final_T,
                  v_image, v_alpha, v_depth, *c["rows"], contrib)

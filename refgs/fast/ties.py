@@ -61,7 +61,7 @@ def _pixel_distances(lo, hi, gauss, offsets, means2d, conics, opac, colors, dept
     H, W = d_alpha.shape
     one, t_min, cap, amin = rc[rk.R_ONE], rc[rk.R_T_MIN], rc[rk.R_CAP], rc[rk.R_ALPHA_MIN]
     Lm = rk._max_len(offsets, lo, hi)
-    tab = np.empty((Lm, 10), means2d.dtype)
+    tab = np.empty((Lm, rk.N_TAB), means2d.dtype)
     cnt = np.empty(TILE_SIZE, np.int64)
     rs = np.empty((TILE_SIZE, Lm), np.int32)
     col_lo = np.empty((TILE_SIZE, Lm), np.int8)
@@ -95,8 +95,8 @@ def _pixel_distances(lo, hi, gauss, offsets, means2d, conics, opac, colors, dept
                     if c < col_lo[r, k] or c > col_hi[r, k]:
                         continue
                     s = rs[r, k]
-                    dx = tab[s, 0] - xs[c]
-                    dy = tab[s, 1] - ys[r]
+                    dx = (tab[s, 0] - xs[c]) + tab[s, 10]
+                    dy = (tab[s, 1] - ys[r]) + tab[s, 11]
                     power = rk._power(tab[s, 2], tab[s, 3], tab[s, 4] * dy * dy, dx, dy,
                                       rc[rk.R_NEG_HALF])
                     if power > 0.0:
