@@ -484,7 +484,8 @@ def composite_forward(lo, hi, gauss, offsets, pos, means2d, conics, opac, colors
                       last_img, final_T, row_cnt, row_slots):
     """Front-to-back compositing (RAS-03..RAS-06) of the pixels of tiles [lo, hi).
 
-    gauss/offsets/pos from :func:`build_tile_lists`; per-Gaussian means2d (N,2), conics (N,3),
+    gauss/offsets/pos from :func:`build_tile_lists`; per-Gaussian means2d (N,2) (in D, or float64
+    for float32 compositing of float64 geometry: :func:`_gather`), conics (N,3),
     opac (N,), colors (N,3), depths (N,); bg (3,), rc the R_* constants, eps the dtype's machine
     epsilon (float64); outputs image (H,W,3), alpha_img / depth_img / final_T (H,W) in D,
     n_contrib (H,W) int32 (1-based position in the full tile list, RAS-06, through ``pos``) and
