@@ -336,7 +336,8 @@ def table(results: list[dict]) -> str:
                          f"| {b['forward_backward_s']:.3f} | {_fmt(b.get('speedup_vs_ref64'), '.1f')} "
                          f"| {_fmt(b.get('image_max_abs'))} | {_ties(b)}"
                          + (f" ({b['tie_pixels_differing']})" if "tie_pixels_differing" in b else "") + " "
-                         f"| {_fmt(b.get('image_max_abs_all'))} | {_fmt(b.get('grad_rel_l2'))} | {_fmt(b.get('grad_worst_element'))} "
+                         f"| {_fmt(b.get('image_max_abs_all'))} | {_fmt(b.get('grad_rel_l2'))} "
+                         f"| {_fmt(b.get('grad_worst_element'))} "
                          f"| {r['error_reference'] if name != r['error_reference'] else '(reference)'} |")
     return "\n".join(lines) + "\n"
 

@@ -54,7 +54,8 @@ MIN_PARALLEL_SORT = 16384
 #: explicit mixed precision: that stage in float64, its outputs rounded to float32 for the
 #: compositing -- except the 2D means, which the compositing carries as float32 value + float32
 #: residual -- so every per-Gaussian decision is the float64 one and pixel offsets keep float64's
-#: position: no geometric or depth-order near-ties; docs/fast.md "Mixed precision").  Float64 Gaussians: float64 either way.
+#: position: no geometric or depth-order near-ties; docs/fast.md "Mixed precision").
+#: Float64 Gaussians: float64 either way.
 GEOMETRY_PRECISIONS = ("input", "float64")
 
 _pool_lock = threading.Lock()
