@@ -9,7 +9,7 @@
     refgs demo [--out DIR] [--iters N]
     refgs bench [--n N ...] [--size WxH ...] [--backends ...] [--fern-run RUN] [--out DIR]
     refgs flatness RUN_DIR ... [--gammas G ...] [--seeds S] [--settings flatness|training]
-    refgs table RUN_DIR ... [--metrics psnr ssim lpips_vgg] [--out DIR]
+    refgs table RUN_DIR ... [--metrics psnr ssim lpips_vgg] [--baseline LABEL] [--out DIR]
     refgs figures RUN_DIR ... [--flatness DIR ...] [--out figures]
 
 Bad input (missing folder, corrupt model, empty image folder, unsupported camera, --views too

@@ -1,14 +1,16 @@
 """``refgs table``: runs aggregated into the paper's kind of table (FM-13).
 
-    refgs table RUN_DIR [RUN_DIR ...] [--metrics psnr ssim lpips_vgg] [--out DIR]
+    refgs table RUN_DIR [RUN_DIR ...] [--metrics psnr ssim lpips_vgg] [--baseline LABEL] [--out DIR]
 
 Each run directory contributes its ``config.json`` (scene, number of views, method and method
 parameters, seed) and ``metrics.json`` (the test-view means).  Rows are grouped by scene, views
 and method label -- the method name, ``+fm`` for the plug-in, and every method parameter that
 differs from its default in brackets (``fm[perturb=rotation]``) -- and reported as mean +-
 standard deviation over seeds (sample std, ddof 1; 0 for one seed), then, per views and method,
-over scenes (mean of the per-scene means +- their std).  Printed as Markdown and written as
-``table.csv`` and ``table.md``.
+over scenes (mean of the per-scene means +- their std).  With ``--baseline LABEL`` (e.g. ``fm``
+for an ablation table) every row also gets, per metric, the difference of its mean from the mean
+of the baseline row of the same scene and views (the sign convention of the paper's comparisons:
+row minus baseline).  Printed as Markdown and written as ``table.csv`` and ``table.md``.
 """
 from __future__ import annotations
 
@@ -71,8 +73,12 @@ def _mean_std(values) -> tuple[float, float]:
     return float(a.mean()), float(a.std(ddof=1)) if a.size > 1 else 0.0
 
 
-def aggregate(runs: list[dict], metrics=DEFAULT_METRICS) -> dict:
-    """{"per_scene": [...], "over_scenes": [...]} rows with mean/std/n per metric."""
+def aggregate(runs: list[dict], metrics=DEFAULT_METRICS, baseline: str | None = None) -> dict:
+    """{"per_scene": [...], "over_scenes": [...]} rows with mean/std/n per metric.
+
+    ``baseline``: a method label; each row then has ``row["delta"][metric]`` = its mean minus the
+    baseline row's mean at the same scene and views (None where either is missing).
+    """
     seen = {}
     for r in runs:
         key = (r["scene"], r["views"], r["label"], r["seed"])
@@ -104,26 +110,54 @@ def aggregate(runs: list[dict], metrics=DEFAULT_METRICS) -> dict:
             row[m] = (dict(zip(("mean", "std"), _mean_std(means)), n=len(means))
                       if len(means) == len(rows) else None)
         over_rows.append(row)
-    return {"metrics": list(metrics), "per_scene": per_scene, "over_scenes": over_rows}
+    table = {"metrics": list(metrics), "per_scene": per_scene, "over_scenes": over_rows,
+             "baseline": baseline}
+    if baseline is not None:
+        _add_deltas(table, baseline)
+    return table
+
+
+def _add_deltas(table: dict, baseline: str) -> None:
+    """row["delta"] against the baseline row of the same (scene,) views; ConfigError if absent."""
+    labels = sorted({r["method"] for r in table["per_scene"]})
+    if baseline not in labels:
+        raise ConfigError(f"--baseline {baseline!r}: no run has this method label; "
+                          f"the runs have {', '.join(labels)}")
+    for level, key in (("per_scene", ("scene", "views")), ("over_scenes", ("views",))):
+        base = {tuple(r[k] for k in key): r for r in table[level] if r["method"] == baseline}
+        for r in table[level]:
+            b = base.get(tuple(r[k] for k in key))
+            r["delta"] = {m: (None if b is None or r[m] is None or b[m] is None
+                              else r[m]["mean"] - b[m]["mean"]) for m in table["metrics"]}
 
 
 def _cell(v, digits: int) -> str:
     return "-" if v is None else f"{v['mean']:.{digits}f} ± {v['std']:.{digits}f}"
 
 
+def _delta_cell(d, digits: int) -> str:
+    return "-" if d is None else f"{d:+.{digits}f}"
+
+
 def markdown(table: dict) -> str:
     ms = table["metrics"]
     digits = {m: (2 if m == "psnr" else 3) for m in ms}
-    lines = ["| scene | views | method | seeds | " + " | ".join(ms) + " |",
-             "|---|---|---|---|" + "---|" * len(ms)]
+    base = table.get("baseline")
+    head = " | ".join(ms) + (" | " + " | ".join(f"Δ{m} vs {base}" for m in ms) if base else "")
+    rule = "---|" * (len(ms) * (2 if base else 1))
+
+    def cells(r):
+        out = [_cell(r[m], digits[m]) for m in ms]
+        if base:
+            out += [_delta_cell(r["delta"][m], digits[m]) for m in ms]
+        return " | ".join(out)
+
+    lines = ["| scene | views | method | seeds | " + head + " |", "|---|---|---|---|" + rule]
     for r in table["per_scene"]:
-        lines.append(f"| {r['scene']} | {r['views']} | {r['method']} | {len(r['seeds'])} | "
-                     + " | ".join(_cell(r[m], digits[m]) for m in ms) + " |")
-    lines += ["", "| views | method | scenes | " + " | ".join(ms) + " |",
-              "|---|---|---|" + "---|" * len(ms)]
+        lines.append(f"| {r['scene']} | {r['views']} | {r['method']} | {len(r['seeds'])} | {cells(r)} |")
+    lines += ["", "| views | method | scenes | " + head + " |", "|---|---|---|" + rule]
     for r in table["over_scenes"]:
-        lines.append(f"| {r['views']} | {r['method']} | {len(r['scenes'])} | "
-                     + " | ".join(_cell(r[m], digits[m]) for m in ms) + " |")
+        lines.append(f"| {r['views']} | {r['method']} | {len(r['scenes'])} | {cells(r)} |")
     return "\n".join(lines) + "\n"
 
 
@@ -131,13 +165,17 @@ def _csv(table: dict) -> str:
     buf = io.StringIO()
     w = csv.writer(buf)
     ms = table["metrics"]
-    w.writerow(["level", "scene", "views", "method", "n"] + [f"{m}_{s}" for m in ms for s in ("mean", "std")])
+    base = table.get("baseline")
+    w.writerow(["level", "scene", "views", "method", "n"] + [f"{m}_{s}" for m in ms for s in ("mean", "std")]
+               + ([f"{m}_delta_vs_{base}" for m in ms] if base else []))
     for level, rows in (("scene", table["per_scene"]), ("over_scenes", table["over_scenes"])):
         for r in rows:
             n = len(r.get("seeds", r.get("scenes", [])))
             vals = []
             for m in ms:
                 vals += ["", ""] if r[m] is None else [r[m]["mean"], r[m]["std"]]
+            if base:
+                vals += ["" if r["delta"][m] is None else r["delta"][m] for m in ms]
             w.writerow([level, r.get("scene", "all"), r["views"], r["method"], n] + vals)
     return buf.getvalue()
 
@@ -146,11 +184,13 @@ def add_parser(sub) -> None:
     t = sub.add_parser("table", help="aggregate finished runs: mean +- std over seeds and scenes")
     t.add_argument("run_dirs", nargs="+")
     t.add_argument("--metrics", nargs="+", default=list(DEFAULT_METRICS))
+    t.add_argument("--baseline", metavar="LABEL",
+                   help="add each row's difference from this method label's row (e.g. fm)")
     t.add_argument("--out", default="table-out")
 
 
 def run(args) -> dict:
-    table = aggregate([load_run(r) for r in args.run_dirs], args.metrics)
+    table = aggregate([load_run(r) for r in args.run_dirs], args.metrics, args.baseline)
     out = Path(args.out)
     md = markdown(table)
     atomic_write_text(out / "table.md", md)

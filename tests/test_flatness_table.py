@@ -97,3 +97,29 @@ def test_fm13_table_mean_std_over_seeds_and_scenes(runs, tmp_path, capsys):
     assert (tmp_path / "table.csv").read_text().startswith("level,scene,views,method,n,psnr_mean")
     rc, _, err = run_cli(["table", tmp_path / "nope", "--out", tmp_path], capsys)
     assert rc == 2 and err.startswith("refgs: error:") and "config.json" in err
+
+
+def test_fm13_baseline_deltas(runs, tmp_path, capsys):
+    loaded = [load_run(d) for d in runs.values()]
+    other = [dict(r, scene="other", run=r["run"] + "'") for r in loaded if r["label"] != "fm"]
+    t = aggregate(loaded + other, baseline="fm")
+    rows = {(r["scene"], r["method"]): r for r in t["per_scene"]}
+    fern = loaded[0]["scene"]
+    d = rows[(fern, "fm[perturb=scale]")]["delta"]["psnr"]
+    assert d == rows[(fern, "fm[perturb=scale]")]["psnr"]["mean"] - rows[(fern, "fm")]["psnr"]["mean"]
+    assert d != 0.0
+    assert rows[(fern, "fm")]["delta"]["psnr"] == 0.0
+    assert rows[("other", "3dgs")]["delta"]["psnr"] is None      # "other" has no fm row
+    assert rows[(fern, "3dgs")]["delta"]["lpips_vgg"] is None    # no LPIPS in the tiny runs
+    over = {r["method"]: r for r in t["over_scenes"]}
+    assert over["3dgs"]["delta"]["psnr"] == over["3dgs"]["psnr"]["mean"] - over["fm"]["psnr"]["mean"]
+    md = markdown(t)
+    assert "Δpsnr vs fm" in md and f"{d:+.2f}" in md
+    with pytest.raises(Exception, match="--baseline 'nope': no run has this method label"):
+        aggregate(loaded, baseline="nope")
+    rc, out, _ = run_cli(["table", *runs.values(), "--baseline", "fm", "--out", tmp_path], capsys)
+    assert rc == 0 and "Δssim vs fm" in out
+    header = (tmp_path / "table.csv").read_text().splitlines()[0]
+    assert header.endswith("psnr_delta_vs_fm,ssim_delta_vs_fm,lpips_vgg_delta_vs_fm")
+    rc, _, err = run_cli(["table", *runs.values(), "--baseline", "nope", "--out", tmp_path / "x"], capsys)
+    assert rc == 2 and "--baseline 'nope'" in err and not (tmp_path / "x").exists()
