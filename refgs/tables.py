@@ -10,7 +10,10 @@ standard deviation over seeds (sample std, ddof 1; 0 for one seed), then, per vi
 over scenes (mean of the per-scene means +- their std).  With ``--baseline LABEL`` (e.g. ``fm``
 for an ablation table) every row also gets, per metric, the difference of its mean from the mean
 of the baseline row of the same scene and views (the sign convention of the paper's comparisons:
-row minus baseline).  Printed as Markdown and written as ``table.csv`` and ``table.md``.
+row minus baseline).  Printed as Markdown and written as ``table.csv``, ``table.md`` and
+``table.png``: one panel per metric, a point per (scene, views, method) row with its seed std as
+the error bar -- with ``--baseline``, bars of the differences from the baseline, coloured by
+whether the row is better or worse on that metric (``LOWER_IS_BETTER``).
 """
 from __future__ import annotations
 
@@ -26,6 +29,9 @@ from .errors import ConfigError
 from .io.atomic import atomic_write_text
 
 DEFAULT_METRICS = ("psnr", "ssim", "lpips_vgg")
+#: Metrics where a smaller value is better (LPIPS is a distance); the others (PSNR, SSIM) are
+#: better when larger.  Used only to colour the differences in ``table.png``.
+LOWER_IS_BETTER = ("lpips_vgg", "lpips_vgg_official", "lpips_alex")
 
 
 def method_label(settings: dict) -> str:
@@ -180,6 +186,49 @@ def _csv(table: dict) -> str:
     return buf.getvalue()
 
 
+def plot(table: dict, path: Path) -> None:
+    """``table.png``: per metric, one point per per-scene row (mean, error bar the seed std); with
+    a baseline, a bar per row, its difference from the baseline, green where the row is better on
+    the metric, red where worse.  Rows without the metric are left out of its panel."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .io.atomic import atomic_path
+
+    ms, base, rows = table["metrics"], table.get("baseline"), table["per_scene"]
+    labels = [f"{r['scene']} {r['views']}v {r['method']} (n={len(r['seeds'])})" for r in rows]
+    fig, axes = plt.subplots(1, len(ms), figsize=(3.2 * len(ms) + 3.0, 0.35 * len(rows) + 1.4),
+                             sharey=True, squeeze=False)
+    y = np.arange(len(rows))
+    for ax, m in zip(axes[0], ms):
+        ok = [i for i, r in enumerate(rows) if r[m] is not None and (not base or r["delta"][m] is not None)]
+        std = np.array([rows[i][m]["std"] for i in ok])
+        if base:
+            val = np.array([rows[i]["delta"][m] for i in ok])
+            better = -val if m in LOWER_IS_BETTER else val
+            colors = ["tab:green" if b > 0 else "tab:red" if b < 0 else "0.6" for b in better]
+            ax.axvline(0.0, color="k", lw=0.8)
+            ax.set_title(f"Δ{m} vs {base}\n({'lower' if m in LOWER_IS_BETTER else 'higher'} is better)",
+                         fontsize=9)
+        else:
+            # points, not bars: the axis then spans the values, not 0 .. max
+            val = np.array([rows[i][m]["mean"] for i in ok])
+            ax.errorbar(val, y[ok], xerr=std, fmt="o", color="tab:blue", ecolor="k", capsize=3)
+            ax.set_title(f"{m}\n({'lower' if m in LOWER_IS_BETTER else 'higher'} is better)", fontsize=9)
+        if base:
+            ax.barh(y[ok], val, xerr=std, color=colors, ecolor="k", capsize=2)
+        ax.grid(axis="x", alpha=0.3)
+        ax.xaxis.set_major_locator(plt.MaxNLocator(4))
+    axes[0][0].set_yticks(y, labels, fontsize=8)
+    axes[0][0].invert_yaxis()
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            fig.savefig(fh, format="png", dpi=110)
+    plt.close(fig)
+
+
 def add_parser(sub) -> None:
     t = sub.add_parser("table", help="aggregate finished runs: mean +- std over seeds and scenes")
     t.add_argument("run_dirs", nargs="+")
@@ -195,9 +244,10 @@ def run(args) -> dict:
     md = markdown(table)
     atomic_write_text(out / "table.md", md)
     atomic_write_text(out / "table.csv", _csv(table))
+    plot(table, out / "table.png")
     print(md, end="")
     print(f"written to {out}")
     return table
 
 
-__all__ = ["aggregate", "load_run", "markdown", "method_label", "run"]
+__all__ = ["aggregate", "load_run", "markdown", "method_label", "plot", "run"]

@@ -95,6 +95,7 @@ def test_fm13_table_mean_std_over_seeds_and_scenes(runs, tmp_path, capsys):
     rc, out, _ = run_cli(["table", *runs.values(), "--out", tmp_path], capsys)
     assert rc == 0 and "| scene | views | method |" in out
     assert (tmp_path / "table.csv").read_text().startswith("level,scene,views,method,n,psnr_mean")
+    assert (tmp_path / "table.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     rc, _, err = run_cli(["table", tmp_path / "nope", "--out", tmp_path], capsys)
     assert rc == 2 and err.startswith("refgs: error:") and "config.json" in err
 
@@ -121,5 +122,6 @@ def test_fm13_baseline_deltas(runs, tmp_path, capsys):
     assert rc == 0 and "Δssim vs fm" in out
     header = (tmp_path / "table.csv").read_text().splitlines()[0]
     assert header.endswith("psnr_delta_vs_fm,ssim_delta_vs_fm,lpips_vgg_delta_vs_fm")
+    assert (tmp_path / "table.png").stat().st_size > 0
     rc, _, err = run_cli(["table", *runs.values(), "--baseline", "nope", "--out", tmp_path / "x"], capsys)
     assert rc == 2 and "--baseline 'nope'" in err and not (tmp_path / "x").exists()
