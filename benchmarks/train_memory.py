@@ -16,7 +16,7 @@ import tempfile
 import warnings
 from pathlib import Path
 
-from refgs.cli import _restore
+from refgs.runs import load
 from refgs.train.checkpoint import peak_rss_gb, save_checkpoint
 
 
@@ -28,7 +28,7 @@ def main() -> None:
     args = ap.parse_args()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        _, _, trainer = _restore(args.run.absolute())
+        trainer = load(args.run).trainer
     trainer.t = args.start
     for _ in range(args.steps):
         trainer.step()

@@ -1,7 +1,7 @@
 """oracle: conformance testing of any 3DGS backend against refgs (the executable spec).
 
     python -m oracle check --backend module:object [--clause RAS-05] [--max-examples 20]
-                           [--seed 0] [--report DIR]
+                           [--seed 0] [--report DIR] [--timeout 300] [--memory-limit 8192]
     python -m oracle list-clauses
     python -m oracle replay DIR/failures/<check>.npz --backend module:object
 
@@ -10,9 +10,15 @@ attributes ``profile`` and ``dtype`` (oracle/protocol.py; template: oracle/adapt
 Every check cites the spec clauses it tests (oracle/checks.py); the oracle's own rules are
 docs/spec/oracle.md (ORC-xx); the user guide is docs/oracle.md.
 
-Modules: protocol (backend, Scene), clauses (spec headings), tolerances (the one table), ties
-(near-tie analysis), compare (assertion helpers), strategies and hard_cases (scenes), evaluate
-and checks (what is compared), runner, shrink, report, adapters/, meta/ (planted-bug backends).
-Importing the oracle needs the core dependencies only (numpy, scipy, hypothesis).
+The backend runs in a worker process (isolation, worker, wire): a hang, a crash or runaway
+memory is a verdict, never the end of the run.
+
+Modules: protocol (backend, Case), clauses (spec headings), tolerances (the one table), ties
+(near-tie analysis), compare (assertion helpers), strategies and hard_cases (cases), evaluate
+and checks (what is compared), isolation / worker / wire (the backend's process), runner,
+blame (which clauses a failure is evidence against), known (known differences), shrink, report,
+html and pictures (the page), calibrate, adapters/, meta/ (planted-bug and hostile backends).
+Importing the oracle needs the core dependencies only (numpy, scipy, hypothesis; matplotlib for
+the pictures).
 """
 __version__ = "0.1.0"

@@ -1,15 +1,18 @@
 """Command line of the oracle (ORC-08).
 
     python -m oracle check --backend module:object [--clause ID ...] [--max-examples N]
-                           [--seed S] [--report DIR] [--no-shrink]
+                           [--seed S] [--report DIR] [--no-shrink] [--timeout S]
+                           [--memory-limit MIB] [--known-differences FILE.toml]
     python -m oracle list-clauses [--all]
-    python -m oracle replay FILE.npz --backend module:object
+    python -m oracle replay FILE.npz --backend module:object [--out DIR] [--timeout S]
     python -m oracle calibrate --backend module:object [--max-examples N] [--seed S]
     python -m oracle tolerances
 
-``check`` exits 0 exactly when no clause failed ("not provided" and "n/a" do not fail), 1 when
-some clause failed, 2 on a usage error (bad backend, unknown clause).  The module in
-``--backend`` is imported with the current directory on sys.path.
+``check`` and ``replay`` run the backend in a worker process (oracle/isolation.py, ORC-11); the
+module in ``--backend`` is imported there, with the current directory on sys.path, never in
+this process.  ``check`` exits 0 exactly when every check is pass, n/a, not provided or a
+declared known difference, 1 otherwise (fail, error, crash, timeout), 2 on a usage error (a
+backend that cannot be loaded, an unknown clause, a bad known-differences file).
 """
 from __future__ import annotations
 
@@ -19,6 +22,7 @@ import sys
 import numpy as np
 
 from . import __version__
+from .isolation import DEFAULT_MEMORY_LIMIT_MIB, DEFAULT_TIMEOUT
 
 DEFAULT_REPORT_DIR = "oracle-report"
 
@@ -36,20 +40,55 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--max-examples", type=int, default=20, help="hypothesis examples per check (default 20)")
     c.add_argument("--seed", type=int, default=0, help="hypothesis seed (default 0)")
     c.add_argument("--report", default=DEFAULT_REPORT_DIR,
-                   help=f"folder for report.json, report.txt and failures/*.npz (default {DEFAULT_REPORT_DIR})")
+                   help=f"folder for index.html, report.json, report.txt, pictures/ and failures/*.npz "
+                        f"(default {DEFAULT_REPORT_DIR})")
     c.add_argument("--no-shrink", action="store_true", help="report the first failing example as found")
     c.add_argument("--quiet", action="store_true", help="print only the summary line")
+    _worker_options(c)
+    c.add_argument("--known-differences", metavar="FILE",
+                   help="TOML file of [[difference]] tables (check, clause, reason, link): failures "
+                        "reported as 'known' (docs/oracle.md)")
     ls = sub.add_parser("list-clauses", help="the clauses the spec declares and the checks citing them")
     ls.add_argument("--all", action="store_true", help="also clauses with no check (method, oracle)")
     r = sub.add_parser("replay", help="re-run the check of a reproducer .npz against a backend")
     r.add_argument("file")
     r.add_argument("--backend", required=True)
+    r.add_argument("--out", default=None, help="folder for the pictures (default: FILE's folder/<name>-replay)")
+    _worker_options(r)
     k = sub.add_parser("calibrate", help="measure a backend's worst deviation per tolerance row")
     k.add_argument("--backend", required=True)
     k.add_argument("--max-examples", type=int, default=100)
     k.add_argument("--seed", type=int, default=0)
     sub.add_parser("tolerances", help="print the tolerance table (ORC-03) as Markdown")
+    d = sub.add_parser("diagnose", help="which named deviations (docs/spec/deviations.md) explain "
+                                        "a backend's failures; the backend runs in this process")
+    d.add_argument("--backend", required=True)
+    d.add_argument("--report", default=None, help="folder for diagnosis.json and diagnosis.txt")
+    d.add_argument("--max-examples", type=int, default=6, help="scenes per check (default 6)")
+    d.add_argument("--seed", type=int, default=0, help="hypothesis seed (default 0)")
+    d.add_argument("--no-checks", action="store_true", help="judge on the deviations' witness scenes only")
+    m = sub.add_parser("matrix", help="run several backends and tabulate their clause statuses "
+                                      "(oracle/matrix.py, docs/conformance.md)")
+    m.add_argument("--backend", action="append", default=[],
+                   help="a column, module:object or registry name (repeatable; default: the shipped "
+                        "and outside adapters)")
+    m.add_argument("--clause", action="append", default=[], help="only checks citing these clauses")
+    m.add_argument("--max-examples", type=int, default=10, help="hypothesis examples per check (default 10)")
+    m.add_argument("--seed", type=int, default=0, help="hypothesis seed (default 0)")
+    m.add_argument("--report", default="oracle-matrix", help="folder for matrix.md, matrix.json and "
+                                                             "one report folder per column")
+    m.add_argument("--no-shrink", action="store_true", help="report the first failing example as found")
+    _worker_options(m)
     return p
+
+
+def _worker_options(p) -> None:
+    p.add_argument("--timeout", type=float, default=DEFAULT_TIMEOUT,
+                   help=f"seconds of backend time one check may use before it is killed and marked "
+                        f"timeout (default {DEFAULT_TIMEOUT:g}; 0: no limit)")
+    p.add_argument("--memory-limit", type=int, default=DEFAULT_MEMORY_LIMIT_MIB, metavar="MIB",
+                   help=f"data memory of the backend's worker process in MiB (default "
+                        f"{DEFAULT_MEMORY_LIMIT_MIB}; 0: no limit); beyond it the check is a crash")
 
 
 def _fail(msg: str) -> int:
@@ -60,30 +99,36 @@ def _fail(msg: str) -> int:
 def cmd_check(a) -> int:
     from .checks import cited_clauses
     from .clauses import expand_selection
-    from .protocol import load_backend
-    from .report import summary_text, write_report
-    from .runner import Settings, run
+    from .known import load_file
+    from .report import summary_text
+    from .runner import Settings, run_isolated, write_reports
 
     if a.max_examples < 1:
         return _fail(f"--max-examples: expected a positive integer, got {a.max_examples}")
+    if a.timeout < 0 or a.memory_limit < 0:
+        return _fail("--timeout and --memory-limit: expected 0 (no limit) or a positive number")
     try:
-        backend = load_backend(a.backend)
         clauses = tuple(sorted(expand_selection(a.clause, cited_clauses()))) if a.clause else ()
+        known = load_file(a.known_differences) if a.known_differences else ()
     except ValueError as exc:
         return _fail(str(exc))
     settings = Settings(max_examples=a.max_examples, seed=a.seed, shrink=not a.no_shrink,
-                        report_dir=a.report, clauses=clauses)
+                        report_dir=a.report, clauses=clauses, timeout=a.timeout or None,
+                        memory_limit_mib=a.memory_limit, known_differences=known)
 
     def progress(r):
         if not a.quiet:
             print(f"  {r.check.name:<28} {r.status:<13} ({r.examples} examples, {r.duration:.1f} s)",
                   file=sys.stderr, flush=True)
 
-    result = run(backend, settings, progress=progress)
-    json_path, txt_path = write_report(result, a.report)
+    try:
+        result = run_isolated(a.backend, settings, progress=progress)
+    except ValueError as exc:                   # the backend cannot be loaded; a bad known difference
+        return _fail(str(exc))
+    json_path, txt_path, page = write_reports(result, a.report)
     text = summary_text(result)
     print(text if not a.quiet else text.splitlines()[-1])
-    print(f"report: {json_path} and {txt_path}")
+    print(f"report: {page} ({json_path}, {txt_path})")
     return result.exit_status
 
 
@@ -107,33 +152,54 @@ def cmd_list(a) -> int:
 
 
 def cmd_replay(a) -> int:
+    from pathlib import Path
+
     from .checks import get_check
-    from .evaluate import Context
-    from .protocol import load_backend
-    from .report import load_scene
+    from .evaluate import Context, reference
+    from .isolation import WorkerLost, open_backend
+    from .pictures import draw
+    from .report import load_case
+    from .runner import safe_evaluate
 
     try:
-        scene, meta = load_scene(a.file)
-        backend = load_backend(a.backend)
+        scene, meta = load_case(a.file)
         check = get_check(meta.get("check", ""))
+        backend = open_backend(a.backend, a.memory_limit)
     except ValueError as exc:
         return _fail(str(exc))
-    if str(scene.config.profile) != backend.profile:
-        return _fail(f"{a.file}: scene is for profile {scene.config.profile!r}, backend renders {backend.profile!r}")
-    ctx = Context(backend)
-    v = check.evaluate(ctx, scene.rounded(backend.dtype))
-    s = scene.summary()
-    print(f"replay {check.name} [{', '.join(check.clauses)}] on N={s['n_gaussians']}, "
-          f"{s['width']}x{s['height']} px against {a.backend}")
-    for c in v.comparisons:
-        print(f"  {'ok  ' if c.ok else 'FAIL'} {c.message}")
-    print("result: " + ("pass" if v.ok else "fail"))
-    return 0 if v.ok else 1
+    out = Path(a.out) if a.out else Path(a.file).with_name(Path(a.file).stem + "-replay")
+    try:
+        if str(scene.config.profile) != backend.profile:
+            return _fail(f"{a.file}: scene is for profile {scene.config.profile!r}, backend renders {backend.profile!r}")
+        s = scene.summary()
+        print(f"replay {check.name} [{', '.join(check.clauses)}] on N={s['n_gaussians']}, "
+              f"{s['width']}x{s['height']} px against {a.backend}")
+        case = scene.rounded(backend.dtype)
+        ctx = Context(backend, capture={})
+        backend.session.begin_check(a.timeout or None)
+        try:
+            v = safe_evaluate(check, ctx, case)
+        except WorkerLost as lost:
+            print(f"  {lost.kind.upper()} {lost.reason}")
+            pics = draw({"case": case, "forward": {"ref": reference(case)}}, out, check.name, note=lost.reason)
+            print(f"pictures: {', '.join(str(out / p) for p, _ in pics)}")
+            print(f"result: {lost.kind}")
+            return 1
+        for c in v.comparisons:
+            print(f"  {'ok  ' if c.ok else 'FAIL'} {c.message}")
+        pics = draw({"case": case, **ctx.capture}, out, check.name)
+        if pics:
+            print(f"pictures: {', '.join(str(out / p) for p, _ in pics)}")
+        print("result: " + ("pass" if v.ok else "fail"))
+        return 0 if v.ok else 1
+    finally:
+        backend.session.close()
 
 
 def cmd_calibrate(a) -> int:
+    from .calibrate import calibrate
     from .protocol import load_backend
-    from .runner import Settings, calibrate
+    from .runner import Settings
 
     try:
         backend = load_backend(a.backend)
@@ -159,11 +225,22 @@ def cmd_tolerances(a) -> int:
     return 0
 
 
+def cmd_diagnose(a) -> int:
+    from .diagnose import run_cli
+    return run_cli(a)
+
+
+def cmd_matrix(a) -> int:
+    from .matrix import run_cli
+    return run_cli(a)
+
+
 def main(argv=None) -> int:
     a = _parser().parse_args(argv)
     np.seterr(all="ignore")
     return {"check": cmd_check, "list-clauses": cmd_list, "replay": cmd_replay,
-            "calibrate": cmd_calibrate, "tolerances": cmd_tolerances}[a.cmd](a)
+            "calibrate": cmd_calibrate, "tolerances": cmd_tolerances, "diagnose": cmd_diagnose,
+            "matrix": cmd_matrix}[a.cmd](a)
 
 
 if __name__ == "__main__":

@@ -44,6 +44,15 @@ class Comparison:
     n_bad: int = 0
     ties: dict = field(default_factory=dict)
     metrics: dict = field(default_factory=dict)
+    #: what sort of problem a failure is: "value" (out of tolerance, or a property that does not
+    #: hold), "dtype", "shape", "missing", "nonfinite", "malformed" (not a numeric array),
+    #: "exception" (the backend raised), "oracle" (the oracle could not evaluate)
+    kind: str = "value"
+    #: what produced the evidence: "forward", "backward", "stage", "errors", "reference"
+    #: (set by oracle/evaluate.py; oracle/blame.py reads it)
+    evidence: str = ""
+    #: for kind "exception": the exception's type and the line it was raised at
+    origin: str = ""
 
     def to_json(self) -> dict:
         def f(x):
@@ -55,16 +64,18 @@ class Comparison:
                 "ratio": f(self.ratio), "index": None if self.index is None else [int(i) for i in self.index],
                 "got": f(self.got), "expected": f(self.expected), "error": f(self.error),
                 "bound": f(self.bound), "n_compared": int(self.n_compared), "n_bad": int(self.n_bad),
-                "ties": self.ties, "metrics": {k: f(v) for k, v in self.metrics.items()}}
+                "ties": self.ties, "metrics": {k: f(v) for k, v in self.metrics.items()},
+                "kind": self.kind, "evidence": self.evidence}
 
 
 def _fmt(x) -> str:
     return f"{x:.6g}" if isinstance(x, (float, np.floating)) else str(x)
 
 
-def problem(output: str, message: str) -> Comparison:
-    """A failed comparison that is not about values (missing field, crash, wrong shape)."""
-    return Comparison(output, False, message, ratio=np.inf)
+def problem(output: str, message: str, kind: str = "value", origin: str = "") -> Comparison:
+    """A failed comparison that is not about tolerances (a missing field, an exception, a wrong
+    shape, a property that does not hold); ``kind`` as :attr:`Comparison.kind`."""
+    return Comparison(output, False, message, ratio=np.inf, kind=kind, origin=origin)
 
 
 def fine(output: str, message: str = "") -> Comparison:
@@ -74,15 +85,18 @@ def fine(output: str, message: str = "") -> Comparison:
 def check_array(output: str, got, shape, dtype: str | None) -> Comparison | None:
     """Shape, dtype and finiteness of a backend array (API-04, API-05, CNV-11); None when fine."""
     if got is None:
-        return problem(output, f"{output} is missing from the backend's result")
+        return problem(output, f"{output} is missing from the backend's result", "missing")
+    if hasattr(got, "message") and not hasattr(got, "shape"):          # protocol.Malformed
+        return problem(output, got.message, "malformed")
     if tuple(got.shape) != tuple(shape):
-        return problem(output, f"{output}.shape={tuple(got.shape)}, but should be {tuple(shape)}")
+        return problem(output, f"{output}.shape={tuple(got.shape)}, but should be {tuple(shape)}",
+                       "shape")
     if dtype is not None and got.dtype.kind == "f" and str(got.dtype) != dtype:
         return problem(output, f"{output}.dtype={got.dtype}, but should be {dtype} (the backend's "
-                               f"declared dtype, CNV-11)")
+                               f"declared dtype, CNV-11)", "dtype")
     if got.dtype.kind == "f" and not np.all(np.isfinite(got)):
         bad = tuple(int(i) for i in np.argwhere(~np.isfinite(got))[0])
-        return problem(output, f"{output}{list(bad)}={got[bad]}, but should be finite")
+        return problem(output, f"{output}{list(bad)}={got[bad]}, but should be finite", "nonfinite")
     return None
 
 

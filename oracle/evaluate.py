@@ -23,7 +23,8 @@ from refgs.render import resolve_profile
 from . import tolerances as tl
 from .compare import (Comparison, check_array, compare_exact, compare_gradient, compare_values,
                       fine, problem)
-from .protocol import BackendInfo, GAUSSIAN_OUTPUTS, GRAD_FIELDS, PIXEL_OUTPUTS, Scene, get_field
+from .protocol import (BackendInfo, Case, GAUSSIAN_OUTPUTS, GRAD_FIELDS, Malformed, PIXEL_OUTPUTS,
+                       get_field)
 from .ties import tie_distances
 
 
@@ -32,6 +33,9 @@ class Context:
     """What the evaluators need: the backend and the tie bands of its dtype."""
 
     backend: BackendInfo
+    #: when a dict, the evaluators store the reference's and the backend's arrays in it (the
+    #: pictures of a failure, oracle/pictures.py); None in normal runs
+    capture: dict | None = None
 
     @property
     def profile(self) -> str:
@@ -78,13 +82,34 @@ class Verdict:
         return self
 
 
-def _crash(what: str, exc: BaseException) -> Comparison:
+def raised(exc: BaseException) -> tuple[str, str]:
+    """(type name, ``file:line``) of an exception the backend raised (in this process or, for
+    oracle.isolation.RemoteError, in the worker)."""
+    if hasattr(exc, "type_name"):
+        return exc.type_name, exc.where
     tb = traceback.extract_tb(exc.__traceback__)
-    where = f" at {tb[-1].filename}:{tb[-1].lineno}" if tb else ""
-    return problem(what, f"{what} raised {type(exc).__name__}: {exc}{where}")
+    return type(exc).__name__, (f"{tb[-1].filename}:{tb[-1].lineno} in {tb[-1].name}" if tb else "")
 
 
-def reference(scene: Scene) -> refgs.RenderOutput:
+def _crash(what: str, exc: BaseException) -> Comparison:
+    name, where = raised(exc)
+    return problem(what, f"{what} raised {name}: {exc}" + (f" at {where}" if where else ""),
+                   "exception", origin=f"{name}@{where}")
+
+
+def _tag(v: "Verdict", evidence: str) -> "Verdict":
+    """Mark the comparisons of ``v`` that have no evidence kind yet (oracle/blame.py)."""
+    for c in v.comparisons:
+        c.evidence = c.evidence or evidence
+    return v
+
+
+def _keep(ctx: "Context", key: str, **arrays) -> None:
+    if ctx.capture is not None:
+        ctx.capture.setdefault(key, {}).update(arrays)
+
+
+def reference(scene: Case) -> refgs.RenderOutput:
     """refgs.render in float64 on the (already rounded) scene: the reference (ORC-05)."""
     return refgs.render(scene.gaussians, scene.camera, scene.config)
 
@@ -166,15 +191,19 @@ def compare_render(ctx: Context, ref: refgs.RenderOutput, got, masks, stage="ren
         if val is None:
             if name in ("image", "alpha"):
                 v.comparisons.append(problem(name, f"{name} is missing from the backend's render "
-                                                   "output (required, API-04)"))
+                                                   "output (required, API-04)", "missing"))
             continue
         v.provided.add(name)
+        if isinstance(val, Malformed):
+            v.comparisons.append(problem(name, val.message, "malformed"))
+            continue
         refv = np.asarray(getattr(ref, name))
         if name == "radii" and val.shape == (n,):
             val = np.repeat(val[:, None], 2, axis=1)
         if name in ("radii", "n_contrib", "visible"):
             if val.shape != refv.shape:
-                v.comparisons.append(problem(name, f"{name}.shape={val.shape}, but should be {refv.shape}"))
+                v.comparisons.append(problem(name, f"{name}.shape={val.shape}, but should be "
+                                                   f"{refv.shape}", "shape"))
                 continue
             if name == "visible":
                 val = val.astype(bool)
@@ -199,14 +228,16 @@ def compare_render(ctx: Context, ref: refgs.RenderOutput, got, masks, stage="ren
     return v
 
 
-def forward(ctx: Context, scene: Scene, invariants=()) -> Verdict:
+def forward(ctx: Context, scene: Case, invariants=()) -> Verdict:
     """render() outputs against the reference; ``invariants`` are extra functions
     ``(ctx, scene, ref, got) -> Comparison`` (e.g. final T >= 1e-4 for HARD-07)."""
     ref = reference(scene)
+    _keep(ctx, "forward", ref=ref)
     try:
         got = ctx.backend.obj.render(scene.gaussians, scene.camera, scene.config)
     except Exception as exc:                                  # the backend's failure, reported
-        return Verdict([_crash("render", exc)])
+        return _tag(Verdict([_crash("render", exc)]), "forward")
+    _keep(ctx, "forward", got=got)
     masks, info, over = _tie_accounting(ctx, ref, "forward")
     if over is not None:
         return Verdict(ties={"forward": info}, inconclusive=over)
@@ -214,10 +245,10 @@ def forward(ctx: Context, scene: Scene, invariants=()) -> Verdict:
     v.ties = {"forward": info}
     for inv in invariants:
         v.comparisons.append(inv(ctx, scene, ref, got))
-    return v
+    return _tag(v, "forward")
 
 
-def cotangents(scene: Scene, shape_hw, dtype: str, mask=None, kinds=("image",)) -> dict:
+def cotangents(scene: Case, shape_hw, dtype: str, mask=None, kinds=("image",)) -> dict:
     """Random cotangents from the scene's seed, zero on near-tie pixels, rounded to ``dtype``."""
     rng = np.random.default_rng(scene.seed)
     H, W = shape_hw
@@ -232,7 +263,7 @@ def cotangents(scene: Scene, shape_hw, dtype: str, mask=None, kinds=("image",)) 
     return out
 
 
-def backward(ctx: Context, scene: Scene, fields=GRAD_FIELDS + ("means2d",), kinds=("image",),
+def backward(ctx: Context, scene: Case, fields=GRAD_FIELDS + ("means2d",), kinds=("image",),
              invariants=()) -> Verdict:
     """render_backward() against refgs.render_backward for the same random cotangents (API-05).
 
@@ -241,10 +272,12 @@ def backward(ctx: Context, scene: Scene, fields=GRAD_FIELDS + ("means2d",), kind
     """
     be = ctx.backend
     ref = reference(scene)
+    _keep(ctx, "forward", ref=ref)
     try:
         got = be.obj.render(scene.gaussians, scene.camera, scene.config)
     except Exception as exc:
-        return Verdict([_crash("render", exc)])
+        return _tag(Verdict([_crash("render", exc)]), "forward")
+    _keep(ctx, "forward", got=got)
     masks, info, over = _tie_accounting(ctx, ref, "backward")
     use = tuple(k for k in kinds if k == "image" or f"v_{k}" in be.backward_kwargs)
     cot = cotangents(scene, ref.alpha.shape, ctx.dtype, masks["backward"], use)
@@ -254,11 +287,13 @@ def backward(ctx: Context, scene: Scene, fields=GRAD_FIELDS + ("means2d",), kind
         return v
     v.provided |= {f"cotangent:{k}" for k in use}
     ref_g = refgs.render_backward(ref, **cot)
+    _keep(ctx, "backward", ref=ref_g)
     try:
         got_g = be.obj.render_backward(got, **cot)
     except Exception as exc:
         v.comparisons.append(_crash("render_backward", exc))
-        return v
+        return _tag(v, "backward")
+    _keep(ctx, "backward", got=got_g)
     cancel = cancellation(ref, scene, ctx.dtype, masks["backward"], use, ref_g, masks["n_live"])
     for name in fields:
         val = get_field(got_g, name)
@@ -269,7 +304,7 @@ def backward(ctx: Context, scene: Scene, fields=GRAD_FIELDS + ("means2d",), kind
                                                     masks["cond_grad"], masks["ill"], cancel[name]))
     for inv in invariants:
         v.comparisons.append(inv(ctx, scene, ref_g, got_g))
-    return v
+    return _tag(v, "backward")
 
 
 def compare_gradient_field(name: str, val, ref_g, gaussians, dtype: str, cond=None,
@@ -308,7 +343,7 @@ def compare_gradient_field(name: str, val, ref_g, gaussians, dtype: str, cond=No
                             cancel=cancel)
 
 
-def cancellation(ref, scene: Scene, dtype: str, mask, kinds, ref_g, n_live) -> dict:
+def cancellation(ref, scene: Case, dtype: str, mask, kinds, ref_g, n_live) -> dict:
     """Per-element allowance for cancellation in a gradient's sum over pixels (ORC-04).
 
     A gradient element is a sum over the Gaussian's n live fragments of terms t_p linear in the
@@ -319,7 +354,7 @@ def cancellation(ref, scene: Scene, dtype: str, mask, kinds, ref_g, n_live) -> d
     """
     sq = {f: np.asarray(getattr(ref_g, f), np.float64) ** 2 for f in GRAD_FIELDS + ("means2d",)}
     for k in range(1, tl.CANCEL_DRAWS + 1):
-        alt = Scene(scene.gaussians, scene.camera, scene.config, seed=scene.seed + 7919 * k)
+        alt = Case(scene.gaussians, scene.camera, scene.config, seed=scene.seed + 7919 * k)
         g = refgs.render_backward(ref, **cotangents(alt, ref.alpha.shape, dtype, mask, kinds))
         for f in sq:
             sq[f] += np.asarray(getattr(g, f), np.float64) ** 2
@@ -334,7 +369,7 @@ def cancellation(ref, scene: Scene, dtype: str, mask, kinds, ref_g, n_live) -> d
 # ---------------------------------------------------------------------------------------------
 
 
-def stage(ctx: Context, scene: Scene, name: str) -> Verdict:
+def stage(ctx: Context, scene: Case, name: str) -> Verdict:
     """One optional stage function against refgs' stage, on inputs taken from the reference."""
     be = ctx.backend
     fn = be.stages[name]
@@ -353,7 +388,7 @@ def stage(ctx: Context, scene: Scene, name: str) -> Verdict:
         if name == "covariance":
             exp = refgs.covariance_3d(g.quats, g.log_scales)["cov3d"]
             got = fn(g.quats, g.log_scales)
-            outs = {"cov3d": (np.asarray(get_field({"x": got}, "x")), exp, None)}
+            outs = {"cov3d": (_value(got), exp, None)}
         elif name == "projection":
             cov = rnd(refgs.covariance_3d(g.quats, g.log_scales)["cov3d"])
             opac = expit(g.opacity_logits)
@@ -369,7 +404,7 @@ def stage(ctx: Context, scene: Scene, name: str) -> Verdict:
             campos = rnd(cam.center)
             exp = refgs.eval_sh_colors(g.means, g.sh, campos, deg)["colors"]
             got = fn(g.means, g.sh, campos, deg)
-            outs = {"colors": (np.asarray(get_field({"x": got}, "x")), exp, None)}
+            outs = {"colors": (_value(got), exp, None)}
         elif name == "composite":
             g2d = {"means2d": rnd(ref.means2d), "conics": rnd(ref.conics),
                    "opacities": rnd(ref.opacities), "colors": rnd(ref.colors), "depths": rnd(ref.depths)}
@@ -384,13 +419,18 @@ def stage(ctx: Context, scene: Scene, name: str) -> Verdict:
             raise KeyError(name)
     except Exception as exc:
         v.comparisons.append(_crash(f"stage_{name}", exc))
-        return v
+        return _tag(v, "stage")
+    _keep(ctx, "stage", ref={k: np.asarray(e) for k, (_, e, _) in outs.items()},
+          got={k: g_ for k, (g_, _, _) in outs.items() if g_ is not None})
     for out, (val, expv, sel) in outs.items():
         if val is None:
             if out in ("cov3d", "colors", "image", "alpha", "means2d", "conics", "depths", "radii"):
-                v.comparisons.append(problem(out, f"stage_{name} returned no {out}"))
+                v.comparisons.append(problem(out, f"stage_{name} returned no {out}", "missing"))
             continue
         v.provided.add(out)
+        if isinstance(val, Malformed):
+            v.comparisons.append(problem(out, val.message, "malformed"))
+            continue
         expv = np.asarray(expv)
         if out == "radii" and val.shape == expv.shape[:1]:
             val = np.repeat(val[:, None], 2, axis=1)
@@ -398,7 +438,8 @@ def stage(ctx: Context, scene: Scene, name: str) -> Verdict:
             ex = masks["lists"] if out == "n_contrib" else (
                 masks["gaussians"][:, None] if out == "radii" else masks["gaussians"])
             if val.shape != expv.shape:
-                v.comparisons.append(problem(out, f"{out}.shape={val.shape}, but should be {expv.shape}"))
+                v.comparisons.append(problem(out, f"{out}.shape={val.shape}, but should be {expv.shape}",
+                                             "shape"))
             else:
                 v.comparisons.append(compare_exact(out, val.astype(expv.dtype), expv, exempt=ex))
             continue
@@ -415,7 +456,15 @@ def stage(ctx: Context, scene: Scene, name: str) -> Verdict:
             s = None if sel is None else sel.reshape((-1,) + (1,) * (expv.ndim - 1))
             ex = masks["gaussians"].reshape((-1,) + (1,) * (expv.ndim - 1)) if name == "projection" else None
             v.comparisons.append(compare_values(out, val, expv, tol, select=s, exempt=ex, extra=extra))
-    return v
+    return _tag(v, "stage")
+
+
+def _value(got):
+    """A stage function's array result (None and protocol.Malformed pass through)."""
+    if got is None or isinstance(got, Malformed):
+        return got
+    val = get_field({"x": got}, "x")
+    return val
 
 
 # ---------------------------------------------------------------------------------------------
@@ -423,24 +472,25 @@ def stage(ctx: Context, scene: Scene, name: str) -> Verdict:
 # ---------------------------------------------------------------------------------------------
 
 
-def expect_value_error(ctx: Context, scene: Scene, why: str) -> Verdict:
+def expect_value_error(ctx: Context, scene: Case, why: str) -> Verdict:
     """The reference and the backend must both raise ValueError on ``scene`` (API-03)."""
     v = Verdict()
     try:
         reference(scene)
         v.comparisons.append(problem("reference", f"refgs did not reject {why}: the oracle's "
-                                                  "invalid-input case is wrong"))
+                                                  "invalid-input case is wrong", "oracle"))
     except ValueError:
         pass
     try:
         ctx.backend.obj.render(scene.gaussians, scene.camera, scene.config)
     except ValueError:
         v.comparisons.append(fine("error", f"ValueError for {why}"))
-        return v
+        return _tag(v, "errors")
     except Exception as exc:
-        v.comparisons.append(problem("error", f"render raised {type(exc).__name__} for {why}, "
-                                              f"but should raise ValueError (API-03): {exc}"))
-        return v
+        name, where = raised(exc)
+        v.comparisons.append(problem("error", f"render raised {name} for {why}, but should raise "
+                                              f"ValueError (API-03): {exc}" + (f" at {where}" if where else "")))
+        return _tag(v, "errors")
     v.comparisons.append(problem("error", f"render returned normally for {why}, but should raise "
                                           "ValueError (API-03)"))
-    return v
+    return _tag(v, "errors")

@@ -1,11 +1,13 @@
 """The hard-case catalogue as scene builders, one per HARD-01 .. HARD-13 (docs/spec/hard_cases.md).
 
-Each builder is ``build(rng, profile) -> Scene``: a small scene (<= 40 Gaussians, <= 64 x 48
-pixels) reproducing the situation of the bug report the clause cites.  The oracle draws the seed
+Each builder is ``build(rng, caps) -> Case``: a small scene (<= 40 Gaussians, <= 64 x 48
+pixels) reproducing the situation of the bug report the clause cites, inside the backend's
+declared capabilities ``caps`` (a strategies.Capabilities: its profile, SH degree, camera model,
+background; ORC-02).  The oracle draws the seed
 with hypothesis (:func:`hard_case_scenes`), renders with the backend and the reference, and
 compares forward and backward (oracle/checks.py, one check per HARD id).
 
-    HARD_CASES["HARD-07"].build(np.random.default_rng(0), "inria") -> Scene
+    HARD_CASES["HARD-07"].build(np.random.default_rng(0), Capabilities("inria")) -> Case
 """
 from __future__ import annotations
 
@@ -18,8 +20,8 @@ from hypothesis import strategies as st
 import refgs
 from refgs.constants import PROFILES
 
-from .protocol import Scene
-from .strategies import SH_COEFFS, random_quats, random_sh, unproject
+from .protocol import Case
+from .strategies import SH_COEFFS, Capabilities, random_quats, random_sh, unproject
 
 W, H = 48, 32
 
@@ -43,10 +45,15 @@ def _gaussians(rng, cam, uv, z, log_scales, logits, quats=None, k=SH_COEFFS) -> 
     return refgs.Gaussians(means, ls, q, lg, random_sh(rng, n, k))
 
 
-def _scene(g, cam, profile, rng, label, **cfg) -> Scene:
+def _scene(g, cam, caps: Capabilities, rng, label, **cfg) -> Case:
+    """The case, inside ``caps``: at most its SH degree and coefficients (SH-01), a black
+    background where it declares none (the random draws are the same either way)."""
     cfg.setdefault("sh_degree", 3 if g.sh.shape[1] >= 16 else 0)
-    return Scene(g, cam, refgs.RenderConfig(profile=profile, **cfg), seed=int(rng.integers(2**31)),
-                 label=label)
+    cfg["sh_degree"] = min(cfg["sh_degree"], caps.max_sh_degree)
+    if not caps.background:
+        cfg["background"] = (0.0, 0.0, 0.0)
+    return Case(caps.fit_sh(g), cam, refgs.RenderConfig(profile=caps.profile, **cfg),
+                seed=int(rng.integers(2**31)), label=label)
 
 
 def _limit_fraction(cam, profile, side=1.0) -> float:
@@ -62,27 +69,27 @@ def _limit_fraction(cam, profile, side=1.0) -> float:
     return u / cam.width
 
 
-def hard01(rng, profile):
+def hard01(rng, caps):
     """Gaussians clamped by the frustum (|t_x/t_z| beyond the limit, one with t_y clamped) whose
     tails reach the image: the depth gradient under the clamp (#75, PRJ-07)."""
     cam = _camera(rng)
     n = int(rng.integers(2, 7))
     side = rng.choice([-1.0, 1.0], n)
-    u = np.array([_limit_fraction(cam, profile, s) for s in side]) * cam.width
+    u = np.array([_limit_fraction(cam, caps.profile, s) for s in side]) * cam.width
     u += side * rng.uniform(2, 25, n)
     v = rng.uniform(0.2, 0.8, n) * cam.height
     v[0] = cam.height * (1.9 if rng.random() < 0.5 else -0.9)       # t_y clamped too
     g = _gaussians(rng, cam, np.stack([u, v], -1), rng.uniform(2.5, 5, n),
                    rng.uniform(-0.3, 0.6, (n, 3)), rng.uniform(0, 4, n))
-    return _scene(g, cam, profile, rng, "HARD-01 frustum clamp")
+    return _scene(g, cam, caps, rng, "HARD-01 frustum clamp")
 
 
-def hard02(rng, profile):
+def hard02(rng, caps):
     """Needles (one axis 1e3..1e6 x the others) crossing the frustum limits (gsplat PR #977)."""
     cam = _camera(rng)
     n = int(rng.integers(2, 8))
     side = rng.choice([-1.0, 1.0], n)
-    u = np.array([_limit_fraction(cam, profile, s) for s in side]) * cam.width
+    u = np.array([_limit_fraction(cam, caps.profile, s) for s in side]) * cam.width
     u += side * rng.uniform(-8, 8, n)
     base = rng.uniform(-6, -4, n)
     ls = np.repeat(base[:, None], 3, 1)
@@ -90,10 +97,10 @@ def hard02(rng, profile):
     ls = np.minimum(ls, 1.5)
     g = _gaussians(rng, cam, np.stack([u, rng.uniform(0.2, 0.8, n) * cam.height], -1),
                    rng.uniform(2.5, 5, n), ls, rng.uniform(0, 3, n))
-    return _scene(g, cam, profile, rng, "HARD-02 off-screen needles")
+    return _scene(g, cam, caps, rng, "HARD-02 off-screen needles")
 
 
-def hard03(rng, profile):
+def hard03(rng, caps):
     """Anisotropic Gaussians rotated in screen space (b != 0): the off-diagonal conic gradient
     (#551; RAS-08)."""
     cam = _camera(rng)
@@ -105,35 +112,41 @@ def hard03(rng, profile):
     quats = np.concatenate([np.cos(ang / 2)[:, None], np.sin(ang / 2)[:, None] * axis[None, :]], -1)
     g = _gaussians(rng, cam, rng.uniform(0.2, 0.8, (n, 2)) * [cam.width, cam.height],
                    rng.uniform(3, 5, n), ls, rng.uniform(0, 3, n), quats=quats)
-    return _scene(g, cam, profile, rng, "HARD-03 conic off-diagonal")
+    return _scene(g, cam, caps, rng, "HARD-03 conic off-diagonal")
 
 
-def hard04(rng, profile):
+def hard04(rng, caps):
     """One Gaussian, isotropic or anisotropic (gsplat #91: compare every gradient, in pixels)."""
     cam = _camera(rng)
     iso = rng.random() < 0.5
     ls = np.full(3, rng.uniform(-2.5, -1.5)) if iso else rng.uniform(-3.5, -1.2, 3)
     g = _gaussians(rng, cam, rng.uniform(0.3, 0.7, (1, 2)) * [cam.width, cam.height],
                    rng.uniform(3, 5), ls, rng.uniform(-1, 4))
-    return _scene(g, cam, profile, rng, "HARD-04 single Gaussian")
+    return _scene(g, cam, caps, rng, "HARD-04 single Gaussian")
 
 
-def hard05(rng, profile):
+def _focal_ratio(rng, caps) -> float:
+    """fy / fx of HARD-05: 0.95 .. 1.05, or 1 for a one-focal-length camera model (CNV-03)."""
+    r = float(rng.uniform(0.95, 1.05))
+    return 1.0 if caps.camera_model == "simple_pinhole" else r
+
+
+def hard05(rng, caps):
     """A real-camera-like geometry: off-centre principal point, fx != fy, tilted pose, depths
     2..20 (gsplat #157 / PR #172)."""
     fx = float(rng.uniform(40, 70))
     eye = rng.normal(0, 1.0, 3) + [0.5, -0.3, -5.0]
     cam = refgs.Camera.look_at(eye, rng.normal(0, 0.5, 3), up=(0.1, -1.0, 0.2), fx=fx,
-                               fy=fx * rng.uniform(0.95, 1.05), width=64, height=48,
+                               fy=fx * _focal_ratio(rng, caps), width=64, height=48,
                                cx=32 + rng.uniform(-6, 6), cy=24 + rng.uniform(-5, 5))
     n = int(rng.integers(10, 36))
     z = np.exp(rng.uniform(np.log(2), np.log(20), n))
     g = _gaussians(rng, cam, rng.uniform(-0.1, 1.1, (n, 2)) * [64, 48], z,
                    np.log(z)[:, None] - 4.0 + rng.uniform(-1, 1, (n, 3)), rng.uniform(-1, 4, n))
-    return _scene(g, cam, profile, rng, "HARD-05 real camera geometry")
+    return _scene(g, cam, caps, rng, "HARD-05 real camera geometry")
 
 
-def hard06(rng, profile):
+def hard06(rng, caps):
     """Tiny scales (1e-4 .. 1e-7, one axis or all) and quaternion norms down to 1e-30 (#248)."""
     cam = _camera(rng)
     n = int(rng.integers(3, 12))
@@ -144,10 +157,10 @@ def hard06(rng, profile):
     q = random_quats(rng, n) * (10.0 ** rng.uniform(-30, 0, n))[:, None]
     g = _gaussians(rng, cam, rng.uniform(0.1, 0.9, (n, 2)) * [cam.width, cam.height],
                    rng.uniform(2, 6, n), ls, rng.uniform(0, 5, n), quats=q)
-    return _scene(g, cam, profile, rng, "HARD-06 tiny scales and quaternions")
+    return _scene(g, cam, caps, rng, "HARD-06 tiny scales and quaternions")
 
 
-def hard07(rng, profile):
+def hard07(rng, caps):
     """A stack of 2..20 nearly opaque Gaussians (logit up to 20) on one pixel (gsplat #556)."""
     cam = _camera(rng)
     k = int(rng.integers(2, 21))
@@ -155,10 +168,10 @@ def hard07(rng, profile):
     uv = px + rng.normal(0, 0.8, (k, 2))
     g = _gaussians(rng, cam, uv, 2.0 + np.cumsum(rng.uniform(0.05, 0.3, k)),
                    rng.uniform(-2.4, -1.6, (k, 3)), rng.uniform(4, 20, k))
-    return _scene(g, cam, profile, rng, "HARD-07 opaque stack")
+    return _scene(g, cam, caps, rng, "HARD-07 opaque stack")
 
 
-def hard08(rng, profile):
+def hard08(rng, caps):
     """Early termination with skipped fragments in between and Gaussians behind the stop: which
     fragment is the last contributor (#1130; n_contrib, RAS-06)."""
     cam = _camera(rng)
@@ -168,10 +181,10 @@ def hard08(rng, profile):
     logits = np.where(np.arange(3 * k) % 3 == 1, -7.0, rng.uniform(3, 8, 3 * k))   # faint: < 1/255
     uv = px + rng.normal(0, 1.5, (3 * k, 2))
     g = _gaussians(rng, cam, uv, z, rng.uniform(-2.6, -1.8, (3 * k, 3)), logits)
-    return _scene(g, cam, profile, rng, "HARD-08 last contributor")
+    return _scene(g, cam, caps, rng, "HARD-08 last contributor")
 
 
-def hard09(rng, profile):
+def hard09(rng, caps):
     """Opacity reset to 0.01: Gaussians of several sizes, some with the mean on a pixel corner;
     their opacity gradients must exist exactly where the reference's do (gsplat #1011)."""
     cam = _camera(rng)
@@ -183,17 +196,17 @@ def hard09(rng, profile):
     ls = np.log(10.0 ** rng.uniform(-6, -1, n))[:, None] + rng.uniform(-0.2, 0.2, (n, 3))
     logit = np.log(0.01 / 0.99)
     g = _gaussians(rng, cam, uv, z, ls, np.full(n, logit))
-    return _scene(g, cam, profile, rng, "HARD-09 support collapse after reset")
+    return _scene(g, cam, caps, rng, "HARD-09 support collapse after reset")
 
 
-def hard10(rng, profile):
+def hard10(rng, caps):
     """White or random background, gradients with respect to it (#86)."""
     cam = _camera(rng)
     n = int(rng.integers(3, 15))
     g = _gaussians(rng, cam, rng.uniform(0.1, 0.9, (n, 2)) * [cam.width, cam.height],
                    rng.uniform(2.5, 6, n), rng.uniform(-2.8, -1.5, (n, 3)), rng.uniform(-1, 3, n))
     bg = (1.0, 1.0, 1.0) if rng.random() < 0.5 else tuple(float(x) for x in rng.uniform(0, 1, 3))
-    return _scene(g, cam, profile, rng, "HARD-10 background gradient", background=bg)
+    return _scene(g, cam, caps, rng, "HARD-10 background gradient", background=bg)
 
 
 #: largest log-scale of HARD-11's splats: s = e^6 = 400 world units covers every tile of any
@@ -202,21 +215,21 @@ def hard10(rng, profile):
 HARD11_MAX_LOG_SCALE = 6.0
 
 
-def hard11(rng, profile):
+def hard11(rng, caps):
     """Huge splats (log-scale up to 6: 400 world units) and Gaussians just beyond the near plane,
     covering every tile (#28, gsplat #464)."""
     cam = _camera(rng)
-    near = PROFILES[profile].near
+    near = PROFILES[caps.profile].near
     n = int(rng.integers(2, 8))
     z = np.where(rng.random(n) < 0.5, near * rng.uniform(1.05, 2.0, n), rng.uniform(2, 6, n))
     close = (z < 1)[:, None]
     ls = np.where(close, np.log(near) + rng.uniform(-1, 1, (n, 3)), rng.uniform(1, HARD11_MAX_LOG_SCALE, (n, 3)))
     g = _gaussians(rng, cam, rng.uniform(0.2, 0.8, (n, 2)) * [cam.width, cam.height], z, ls,
                    rng.uniform(-3, 1, n))
-    return _scene(g, cam, profile, rng, "HARD-11 huge splats")
+    return _scene(g, cam, caps, rng, "HARD-11 huge splats")
 
 
-def hard12(rng, profile):
+def hard12(rng, caps):
     """An empty scene (K in {1, 4, 16}) or one where every Gaussian is culled (#472, API-06)."""
     cam = _camera(rng)
     k = int(rng.choice([1, 4, 16]))
@@ -229,10 +242,10 @@ def hard12(rng, profile):
                        rng.uniform(2, 4, n), -2.0, 2.0, k=k)
         g = g.replace(means=2 * cam.center - g.means)            # mirrored behind the camera
     bg = tuple(float(x) for x in rng.uniform(0, 1, 3))
-    return _scene(g, cam, profile, rng, "HARD-12 empty / all culled", sh_degree=deg, background=bg)
+    return _scene(g, cam, caps, rng, "HARD-12 empty / all culled", sh_degree=deg, background=bg)
 
 
-def hard13(rng, profile):
+def hard13(rng, caps):
     """Discs (one scale 1e-8 of the others) turned through the exactly edge-on angle (Unity #14)."""
     cam = _camera(rng, tilt=0.0)
     n = int(rng.integers(2, 8))
@@ -244,13 +257,13 @@ def hard13(rng, profile):
     quats = np.concatenate([np.cos(ang / 2)[:, None], np.sin(ang / 2)[:, None] * axis[None]], -1)
     g = _gaussians(rng, cam, rng.uniform(0.3, 0.7, (n, 2)) * [cam.width, cam.height],
                    rng.uniform(3, 5, n), ls, rng.uniform(0, 4, n), quats=quats)
-    return _scene(g, cam, profile, rng, "HARD-13 rank-1 edge-on")
+    return _scene(g, cam, caps, rng, "HARD-13 rank-1 edge-on")
 
 
 @dataclass(frozen=True)
 class HardCase:
     id: str
-    build: Callable[[np.random.Generator, str], Scene]
+    build: Callable[[np.random.Generator, Capabilities], Case]
 
     @property
     def doc(self) -> str:
@@ -264,10 +277,10 @@ HARD_CASES: dict[str, HardCase] = {
          hard12, hard13), start=1)}
 
 
-def hard_case_scenes(case_id: str, profile: str) -> st.SearchStrategy[Scene]:
-    """Hypothesis strategy of scenes of one hard case (the seed is what is drawn)."""
+def hard_case_strategy(case_id: str, caps: Capabilities) -> st.SearchStrategy[Case]:
+    """Hypothesis strategy of cases of one hard case (the seed is what is drawn)."""
     case = HARD_CASES[case_id]
-    return st.integers(0, 2**32 - 1).map(lambda s: case.build(np.random.default_rng(s), profile))
+    return st.integers(0, 2**32 - 1).map(lambda s: case.build(np.random.default_rng(s), caps))
 
 
-__all__ = ["HARD_CASES", "HardCase", "hard_case_scenes"]
+__all__ = ["HARD_CASES", "HardCase", "hard_case_strategy"]

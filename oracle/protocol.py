@@ -20,9 +20,21 @@ and capability attributes
     has_backward   bool                             (optional, default: render_backward exists)
     supports_antialiased    bool  (optional, default False; gsplat profile only, PRJ-08)
     supports_opacity_scale  bool  (optional, default True; RenderConfig.opacity_scale, API-02)
+    supports_background     bool  (optional, default True; a non-black background, RAS-06)
+    supports_principal_point bool (optional, default True; cx, cy anywhere, not only W/2, H/2,
+                            CNV-03)
+    camera_model   "pinhole" | "simple_pinhole"    (optional, default "pinhole": fx and fy;
+                            "simple_pinhole": one focal length, fx == fy, CNV-03)
     unavailable_reason      str or None (optional): when set, render/render_backward cannot run
                             here (e.g. no CUDA device); render-level checks report "n/a" with it,
                             stage checks still run
+    known_differences       a sequence of mappings with ``check``, optional ``clause``,
+                            ``reason`` and optional ``link`` (optional): failures the author
+                            knows of, reported as "known" (oracle/known.py, ORC-02)
+
+Checks outside the declared capabilities are "n/a" with the reason, and every scene the oracle
+draws stays inside them (SH degree and coefficients, camera model, principal point, background,
+opacity_scale, antialiasing).
 
 and optionally
 
@@ -43,10 +55,7 @@ oracle/adapters/template.py is a complete worked template.
 """
 from __future__ import annotations
 
-import importlib
 import inspect
-import os
-import sys
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -56,6 +65,8 @@ import refgs
 
 PROFILES = ("inria", "gsplat")
 DTYPES = ("float32", "float64")
+#: camera models a backend may declare (CNV-03): fx, fy, cx, cy / one focal length fx == fy
+CAMERA_MODELS = ("pinhole", "simple_pinhole")
 #: names of the optional stage functions, in pipeline order (ORC-01)
 STAGES = ("covariance", "projection", "sh", "composite")
 #: fields of a backend's render output the oracle compares when present (API-04)
@@ -69,15 +80,17 @@ class BackendError(ValueError):
 
 
 # ---------------------------------------------------------------------------------------------
-# Scenes: the oracle's unit of input
+# Cases: the oracle's unit of input
 # ---------------------------------------------------------------------------------------------
 
 
 @dataclass(frozen=True)
-class Scene:
-    """One input for a check: float64 Gaussians, a camera, a config, and a seed for cotangents.
+class Case:
+    """One input for a check (a *test case*): the scene -- float64 Gaussians and a camera --, the
+    render config, and a seed for the cotangents of gradient checks.
 
     ``label`` names the strategy or hard-case builder that produced it (shown in reports).
+    Not to be confused with ``refgs.data.colmap.Scene``, a COLMAP reconstruction.
     """
 
     gaussians: refgs.Gaussians
@@ -100,27 +113,27 @@ class Scene:
                 "antialiased": bool(cfg.antialiased),
                 "opacity_scale": cfg.opacity_scale is not None, "seed": int(self.seed)}
 
-    def with_gaussians(self, g: refgs.Gaussians) -> "Scene":
+    def with_gaussians(self, g: refgs.Gaussians) -> "Case":
         cfg = self.config
         if cfg.opacity_scale is not None and len(g) != self.n:
-            raise ValueError("Scene.with_gaussians: use subset() when opacity_scale is set")
-        return Scene(g, self.camera, cfg, self.seed, self.label)
+            raise ValueError("Case.with_gaussians: use subset() when opacity_scale is set")
+        return Case(g, self.camera, cfg, self.seed, self.label)
 
-    def subset(self, index) -> "Scene":
+    def subset(self, index) -> "Case":
         """The scene restricted to Gaussians ``index`` (opacity_scale follows)."""
         cfg = self.config
         if cfg.opacity_scale is not None:
             cfg = _replace_config(cfg, opacity_scale=np.asarray(cfg.opacity_scale)[index])
-        return Scene(self.gaussians.subset(index), self.camera, cfg, self.seed, self.label)
+        return Case(self.gaussians.subset(index), self.camera, cfg, self.seed, self.label)
 
-    def with_camera(self, camera: refgs.Camera) -> "Scene":
-        return Scene(self.gaussians, camera, self.config, self.seed, self.label)
+    def with_camera(self, camera: refgs.Camera) -> "Case":
+        return Case(self.gaussians, camera, self.config, self.seed, self.label)
 
-    def with_config(self, **changes) -> "Scene":
-        return Scene(self.gaussians, self.camera, _replace_config(self.config, **changes),
-                     self.seed, self.label)
+    def with_config(self, **changes) -> "Case":
+        return Case(self.gaussians, self.camera, _replace_config(self.config, **changes),
+                    self.seed, self.label)
 
-    def rounded(self, dtype: str) -> "Scene":
+    def rounded(self, dtype: str) -> "Case":
         """Every float input rounded to ``dtype`` and held in float64 (ORC-05): the backend and the
         float64 reference then see exactly the same numbers."""
         if dtype == "float64":
@@ -137,7 +150,7 @@ class Scene:
         bg = tuple(float(v) for v in r(cfg.background))
         scale = None if cfg.opacity_scale is None else r(cfg.opacity_scale)
         cfg = _replace_config(cfg, background=bg, opacity_scale=scale)
-        return Scene(g, cam, cfg, self.seed, self.label)
+        return Case(g, cam, cfg, self.seed, self.label)
 
 
 def _replace_config(cfg: refgs.RenderConfig, **changes) -> refgs.RenderConfig:
@@ -169,6 +182,13 @@ class BackendInfo:
     supports_opacity_scale: bool
     stages: dict = field(default_factory=dict)
     unavailable_reason: str | None = None
+    supports_background: bool = True
+    supports_principal_point: bool = True
+    camera_model: str = "pinhole"
+    known_differences: tuple = ()
+    #: the isolated worker serving ``obj`` (oracle/isolation.py), None when ``obj`` is the backend
+    #: itself, loaded in this process
+    session: Any = None
 
     def capabilities(self) -> dict:
         """JSON-ready description (the report's ``backend`` block)."""
@@ -177,27 +197,43 @@ class BackendInfo:
                 "backward_cotangents": sorted(["v_image", *self.backward_kwargs]),
                 "supports_antialiased": self.supports_antialiased,
                 "supports_opacity_scale": self.supports_opacity_scale,
+                "supports_background": self.supports_background,
+                "supports_principal_point": self.supports_principal_point,
+                "camera_model": self.camera_model,
                 "stages": sorted(self.stages), "unavailable_reason": self.unavailable_reason}
+
+    def description(self) -> dict:
+        """Everything but the object, as plain data (what an isolated worker sends back)."""
+        return {"spec": self.spec, "name": self.name, "version": self.version,
+                **self.capabilities(), "known_differences": [dict(k) for k in self.known_differences]}
+
+    @classmethod
+    def from_description(cls, d: dict, obj: Any, session: Any = None) -> "BackendInfo":
+        """The inverse of :meth:`description`; ``obj`` stands in for the backend (a proxy whose
+        ``stage_<name>`` methods exist for every stage named in ``d``)."""
+        return cls(obj=obj, spec=d["spec"], name=d["name"], version=d["version"],
+                   profile=d["profile"], dtype=d["dtype"], max_sh_degree=int(d["max_sh_degree"]),
+                   has_backward=bool(d["has_backward"]),
+                   backward_kwargs=frozenset(d["backward_cotangents"]) - {"v_image"},
+                   supports_antialiased=bool(d["supports_antialiased"]),
+                   supports_opacity_scale=bool(d["supports_opacity_scale"]),
+                   stages={s: getattr(obj, f"stage_{s}") for s in d["stages"]},
+                   unavailable_reason=d.get("unavailable_reason"),
+                   supports_background=bool(d["supports_background"]),
+                   supports_principal_point=bool(d["supports_principal_point"]),
+                   camera_model=str(d["camera_model"]),
+                   known_differences=tuple(d.get("known_differences", ())), session=session)
 
 
 def import_object(spec: str) -> Any:
-    """Import ``module[:attr.path]``; the current directory is put on sys.path first."""
-    if not isinstance(spec, str) or not spec.strip():
-        raise BackendError("--backend: expected 'module:object' (e.g. "
-                           "oracle.adapters.refgs_backend:refgs_float32), got an empty value")
-    cwd = os.getcwd()
-    if cwd not in sys.path:
-        sys.path.insert(0, cwd)
-    mod_name, _, attr = spec.strip().partition(":")
+    """Import ``module[:attr.path]`` (the current directory first on sys.path), as the backend
+    registry does (refgs.backends.import_object); BackendError naming the missing piece."""
+    from refgs.backends import import_object as registry_import
+
     try:
-        obj = importlib.import_module(mod_name)
-    except ImportError as exc:
-        raise BackendError(f"--backend {spec}: cannot import module {mod_name!r} ({exc})") from None
-    for part in filter(None, attr.split(".")):
-        if not hasattr(obj, part):
-            raise BackendError(f"--backend {spec}: module {mod_name!r} has no attribute {part!r}")
-        obj = getattr(obj, part)
-    return obj
+        return registry_import(spec, "--backend")
+    except ValueError as exc:
+        raise BackendError(str(exc)) from None
 
 
 def describe_backend(obj: Any, spec: str = "") -> BackendInfo:
@@ -214,6 +250,10 @@ def describe_backend(obj: Any, spec: str = "") -> BackendInfo:
     deg = getattr(obj, "max_sh_degree", refgs.constants.SH_MAX_DEGREE)
     if not isinstance(deg, (int, np.integer)) or not 0 <= deg <= refgs.constants.SH_MAX_DEGREE:
         raise BackendError(f"backend {where}: attribute 'max_sh_degree' must be an int in 0..3, got {deg!r}")
+    model = getattr(obj, "camera_model", "pinhole")
+    if model not in CAMERA_MODELS:
+        raise BackendError(f"backend {where}: attribute 'camera_model' must be one of {CAMERA_MODELS}, "
+                           f"got {model!r}")
     bwd = getattr(obj, "render_backward", None)
     has_bwd = bool(getattr(obj, "has_backward", callable(bwd))) and callable(bwd)
     kwargs = frozenset()
@@ -234,12 +274,48 @@ def describe_backend(obj: Any, spec: str = "") -> BackendInfo:
                        and profile == "gsplat",
                        supports_opacity_scale=bool(getattr(obj, "supports_opacity_scale", True)),
                        stages=stages,
-                       unavailable_reason=getattr(obj, "unavailable_reason", None) or None)
+                       unavailable_reason=getattr(obj, "unavailable_reason", None) or None,
+                       supports_background=bool(getattr(obj, "supports_background", True)),
+                       supports_principal_point=bool(getattr(obj, "supports_principal_point", True)),
+                       camera_model=model, known_differences=_known_differences(obj, where))
 
 
 def load_backend(spec: str) -> BackendInfo:
-    """``import_object`` + ``describe_backend``."""
-    return describe_backend(import_object(spec), spec)
+    """The backend ``spec`` -- a name of the backend registry (refgs.backends: ``ref64``,
+    ``fast32``, ``torch64``, ``gsplat``, ...) or ``module:object`` -- resolved by the registry,
+    then ``describe_backend``; BackendError naming the problem."""
+    from refgs.backends import get_backend
+
+    try:
+        backend = get_backend(spec, flag="--backend", runnable=False)
+    except ValueError as exc:
+        raise BackendError(str(exc)) from None
+    return describe_backend(backend.renderer, spec)
+
+
+#: keys of one ``known_differences`` entry (ORC-02); ``check`` and ``reason`` are required
+KNOWN_KEYS = ("check", "clause", "reason", "link")
+
+
+def _known_differences(obj: Any, where: str) -> tuple:
+    """The backend's ``known_differences`` as a tuple of plain dicts of strings (the keys of
+    :data:`KNOWN_KEYS`); BackendError naming the entry when one is malformed.  Whether each names
+    a real check and clause is checked by oracle/known.py."""
+    raw = getattr(obj, "known_differences", None) or ()
+    if isinstance(raw, (str, bytes)) or not hasattr(raw, "__iter__"):
+        raise BackendError(f"backend {where}: attribute 'known_differences' must be a list of "
+                           f"mappings, got {type(raw).__name__}")
+    out = []
+    for i, entry in enumerate(raw):
+        if not hasattr(entry, "get") or not entry.get("check") or not entry.get("reason"):
+            raise BackendError(f"backend {where}: known_differences[{i}] must be a mapping with "
+                               f"'check' and 'reason' (and optionally 'clause', 'link'), got {entry!r}")
+        extra = set(entry) - set(KNOWN_KEYS)
+        if extra:
+            raise BackendError(f"backend {where}: known_differences[{i}] has unknown keys "
+                               f"{sorted(extra)}; expected {KNOWN_KEYS}")
+        out.append({k: str(entry[k]) for k in KNOWN_KEYS if entry.get(k) is not None})
+    return tuple(out)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -247,17 +323,29 @@ def load_backend(spec: str) -> BackendInfo:
 # ---------------------------------------------------------------------------------------------
 
 
+class Malformed:
+    """Stands in for an output the backend returned that is not a numeric array (an isolated
+    worker could not send it); ``message`` says what it was.  The evaluators report it as a
+    malformed output (status "error")."""
+
+    def __init__(self, message: str):
+        self.message = message
+
+    def __repr__(self) -> str:
+        return f"Malformed({self.message!r})"
+
+
 def get_field(obj: Any, name: str):
     """``obj.name`` or ``obj[name]`` as a numpy array, or None when absent (torch tensors are
-    detached and moved to the CPU)."""
+    detached and moved to the CPU); a :class:`Malformed` stand-in is returned as it is."""
     if obj is None:
         return None
     if isinstance(obj, dict):
         val = obj.get(name)
     else:
         val = getattr(obj, name, None)
-    if val is None:
-        return None
+    if val is None or isinstance(val, Malformed):
+        return val
     if hasattr(val, "detach"):                 # a torch tensor, without importing torch
         val = val.detach().cpu().numpy()
     return np.asarray(val)

@@ -1,9 +1,11 @@
 """Reports: the human-readable summary, the JSON report, reproducer files (ORC-07, ORC-06).
 
-All files are written atomically (a temporary file in the same folder, then ``os.replace``).
+All files are written atomically (refgs/io/atomic.py: a temporary file in the same folder, then
+``os.replace``).
 The JSON schema is documented in docs/oracle.md ("The JSON report"); its ``schema`` field is
 :data:`SCHEMA`.  Reproducers are ``.npz`` files of plain arrays and strings, loaded with
-``allow_pickle=False``.
+``allow_pickle=False``.  The page for a backend's author, index.html with its pictures, is
+oracle/html.py (ORC-13).
 """
 from __future__ import annotations
 
@@ -12,46 +14,19 @@ import json
 import os
 import platform
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 import refgs
+from refgs.io.atomic import atomic_write_bytes, atomic_write_text  # noqa: F401  (re-exported)
 
-from .protocol import Scene
+from .protocol import Case
 
-SCHEMA = "refgs-oracle-report/1"
+SCHEMA = "refgs-oracle-report/2"
 REPRO_FORMAT = "refgs-oracle-scene/1"
-#: clause status precedence when several checks cite one clause (ORC-02)
-STATUS_ORDER = ("fail", "pass", "not provided", "n/a")
-
-
-# ---------------------------------------------------------------------------------------------
-# atomic files
-# ---------------------------------------------------------------------------------------------
-
-
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
-    """Write ``data`` to ``path`` via a temporary file in the same folder and os.replace."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
-
-
-def atomic_write_text(path, text: str) -> Path:
-    return atomic_write_bytes(path, text.encode("utf-8"))
+#: status precedence when several checks cite one clause, worst first (ORC-02, ORC-11)
+STATUS_ORDER = ("crash", "timeout", "error", "fail", "known", "pass", "not provided", "n/a")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -59,7 +34,7 @@ def atomic_write_text(path, text: str) -> Path:
 # ---------------------------------------------------------------------------------------------
 
 
-def save_scene(path, scene: Scene, **meta) -> Path:
+def save_case(path, scene: Case, **meta) -> Path:
     """Write ``scene`` and string/number ``meta`` (check, clauses, backend, ...) as an .npz."""
     g, c, cfg = scene.gaussians, scene.camera, scene.config
     arrays = {f: np.asarray(getattr(g, f), np.float64) for f in refgs.Gaussians.FIELDS}
@@ -78,8 +53,8 @@ def save_scene(path, scene: Scene, **meta) -> Path:
     return atomic_write_bytes(path, buf.getvalue())
 
 
-def load_scene(path) -> tuple[Scene, dict]:
-    """Inverse of :func:`save_scene`; ValueError naming the file if it is not a reproducer."""
+def load_case(path) -> tuple[Case, dict]:
+    """Inverse of :func:`save_case`; ValueError naming the file if it is not a reproducer."""
     path = Path(path)
     try:
         with np.load(path, allow_pickle=False) as z:
@@ -98,7 +73,7 @@ def load_scene(path) -> tuple[Scene, dict]:
                              opacity_scale=d["opacity_scale"] if bool(d["has_opacity_scale"]) else None)
     meta = {k[5:]: (str(v) if v.dtype.kind == "U" else v.tolist()) for k, v in d.items()
             if k.startswith("meta_")}
-    return Scene(g, cam, cfg, seed=int(d["seed"]), label=str(d["label"])), meta
+    return Case(g, cam, cfg, seed=int(d["seed"]), label=str(d["label"])), meta
 
 
 # ---------------------------------------------------------------------------------------------
@@ -122,7 +97,9 @@ def machine() -> dict:
 
 
 def clause_table(results, clauses: dict) -> dict:
-    """Per clause: status (fail > pass > not provided > n/a), citing checks, worst ratio (ORC-02)."""
+    """Per clause: status (the worst of its checks' in :data:`STATUS_ORDER`), citing checks,
+    worst ratio (ORC-02); a check's status for a clause is its ``clause_status`` override (a
+    failure blamed on other clauses, ORC-12), else the check's status."""
     table: dict[str, dict] = {}
     for r in results:
         for cid in r.check.clauses:
@@ -133,14 +110,18 @@ def clause_table(results, clauses: dict) -> dict:
             row["checks"].append({"name": r.check.name, "status": status})
             if STATUS_ORDER.index(status) < STATUS_ORDER.index(row["status"]):
                 row["status"] = status
-            if status in ("pass", "fail") and r.check.kind != "reference":
+            if status not in ("not provided", "n/a") and r.check.kind != "reference":
                 row["reference_only"] = False
-            if r.worst_ratio is not None and np.isfinite(r.worst_ratio):
-                row["worst_ratio"] = max(row["worst_ratio"], float(r.worst_ratio))
-            elif r.worst_ratio is not None:
+            if status == "pass" and r.status != "pass":   # spared by a failure: its passing examples
+                ratio = None if r.worst is None else float(r.worst["ratio"])
+            else:
+                ratio = r.worst_ratio
+            if ratio is not None and np.isfinite(ratio):
+                row["worst_ratio"] = max(row["worst_ratio"], float(ratio))
+            elif ratio is not None:
                 row["worst_ratio"] = float("inf")
     for row in table.values():
-        if row["status"] not in ("pass", "fail"):
+        if row["status"] in ("not provided", "n/a"):
             row["reference_only"] = False
     return table
 
@@ -164,6 +145,7 @@ def to_json(run) -> dict:
         "started": run.started, "duration_s": round(run.duration, 3),
         "exit_status": run.exit_status,
         "summary": counts,
+        "check_summary": {s: sum(1 for r in run.results if r.status == s) for s in STATUS_ORDER},
         "clauses": {cid: {**row, "worst_ratio": ratio(row["worst_ratio"])} for cid, row in table.items()},
         "checks": [r.to_json() for r in run.results],
     }
@@ -196,12 +178,24 @@ def summary_text(run) -> str:
     if unjudged:
         lines += ["", "examples not judged (more near-ties than the budget, ORC-04): " + ", ".join(
             f"{r.check.name} {r.inconclusive} of {r.examples + r.inconclusive}" for r in unjudged)]
-    fails = [r for r in run.results if r.status == "fail"]
+    known = [r for r in run.results if r.status == "known"]
+    if known:
+        lines += ["", "KNOWN DIFFERENCES (declared by the backend; not failures)"]
+        for r in known:
+            for e in r.known:
+                lines.append(f"  {r.check.name} [{e.get('clause') or ', '.join(r.blame['blamed'])}]: "
+                             f"{e['reason']}" + (f" ({e['link']})" if e.get("link") else ""))
+    fails = [r for r in run.results if r.status not in ("pass", "n/a", "not provided", "known")]
     if fails:
         lines += ["", "FAILURES"]
         for r in fails:
-            f = r.failure
-            lines.append(f"  {' '.join(r.check.clauses[:1])} {r.check.name}: {f['message']}")
+            f = r.failure or {"message": "(no details)"}
+            blamed = ", ".join((r.blame or {}).get("blamed", {})) or (
+                "no clause: unattributed" if (r.blame or {}).get("unattributed") else r.check.clauses[0])
+            lines.append(f"  {r.status.upper()} {r.check.name} [{blamed}]: {f['message']}")
+            spared = (r.blame or {}).get("spared", {})
+            if spared:
+                lines.append("    not blamed: " + "; ".join(f"{c} ({why})" for c, why in spared.items()))
             sc = f.get("scene")
             if sc is None:
                 continue
@@ -215,12 +209,14 @@ def summary_text(run) -> str:
                 lines.append(f"    reproducer: {f['reproducer']}")
                 lines.append(f"    replay: {f['replay']}")
     counts = {s: sum(1 for r in table.values() if r["status"] == s) for s in STATUS_ORDER}
-    lines += ["", "clauses: " + ", ".join(f"{counts[s]} {s}" for s in STATUS_ORDER)
+    checks = {s: sum(1 for r in run.results if r.status == s) for s in STATUS_ORDER}
+    lines += ["", "clauses: " + ", ".join(f"{counts[s]} {s}" for s in STATUS_ORDER if counts[s])
+              + "; checks: " + ", ".join(f"{checks[s]} {s}" for s in STATUS_ORDER if checks[s])
               + f"  -> exit status {run.exit_status}"]
     return "\n".join(lines)
 
 
-def scene_parameters(scene: Scene, limit: int = 4) -> list[str]:
+def scene_parameters(scene: Case, limit: int = 4) -> list[str]:
     """The Gaussians of a small scene, one line each (for the failure report)."""
     g = scene.gaussians
     if scene.n > limit:
@@ -236,7 +232,8 @@ def scene_parameters(scene: Scene, limit: int = 4) -> list[str]:
 
 
 def write_report(run, folder) -> tuple[Path, Path]:
-    """report.json and report.txt in ``folder`` (atomic)."""
+    """report.json and report.txt in ``folder`` (atomic); the page is oracle/html.py, and
+    runner.write_reports writes all three."""
     folder = Path(folder)
     j = atomic_write_text(folder / "report.json", json.dumps(to_json(run), indent=2, sort_keys=False) + "\n")
     t = atomic_write_text(folder / "report.txt", summary_text(run) + "\n")

@@ -20,9 +20,15 @@ Positions are drawn in the camera's terms: a fraction of the image width/height 
     depth_ties(camera)                 Gaussians with exactly equal depths (RAS-02)
     tiny_scales / huge_scales / needle_scales / log_scales / either   log-scale families
     near_degenerate_quaternions(g)     the same Gaussians with quaternion norms 1e-30 .. 1e3
-    scenes(profile, ...)               a Scene: camera + Gaussians + config + cotangent seed
+    cases(caps, ...)                   a Case: camera + Gaussians + config + cotangent seed
+
+Every strategy stays inside the backend's declared capabilities (:class:`Capabilities`, ORC-02):
+SH degree and coefficients, camera model, principal point, background.  For a backend declaring
+everything (the defaults) the draws are exactly those of a capability-free strategy.
 """
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 from hypothesis import strategies as st
@@ -30,7 +36,7 @@ from hypothesis import strategies as st
 import refgs
 from refgs.constants import PROFILES
 
-from .protocol import Scene
+from .protocol import Case
 
 MAX_GAUSSIANS = 40
 MAX_WIDTH, MAX_HEIGHT = 64, 48
@@ -43,29 +49,79 @@ def floats(lo: float, hi: float) -> st.SearchStrategy[float]:
     return st.floats(lo, hi, **_FLOAT)
 
 
+@dataclass(frozen=True)
+class Capabilities:
+    """What the cases drawn for a backend may contain (its declared capabilities, ORC-02)."""
+
+    profile: str = "inria"
+    max_sh_degree: int = 3
+    camera_model: str = "pinhole"
+    principal_point: bool = True
+    background: bool = True
+
+    @classmethod
+    def of(cls, backend) -> "Capabilities":
+        """From a protocol.BackendInfo."""
+        return cls(backend.profile, backend.max_sh_degree, backend.camera_model,
+                   backend.supports_principal_point, backend.supports_background)
+
+    @property
+    def max_coeffs(self) -> int:
+        """SH coefficients per Gaussian a case may carry: (max degree + 1)^2 (SH-01)."""
+        return (self.max_sh_degree + 1) ** 2
+
+    def fit_sh(self, g: refgs.Gaussians) -> refgs.Gaussians:
+        """``g`` with at most :attr:`max_coeffs` SH coefficients (the first ones: what any degree
+        up to the maximum reads, SH-01)."""
+        if g.sh.shape[1] <= self.max_coeffs:
+            return g
+        return g.replace(sh=np.ascontiguousarray(g.sh[:, :self.max_coeffs, :]))
+
+    def admits(self, case: Case) -> str | None:
+        """None when ``case`` lies inside these capabilities, else what lies outside."""
+        c, cfg = case.camera, case.config
+        if str(cfg.profile) != self.profile:
+            return f"profile {cfg.profile!r}"
+        if case.gaussians.sh.shape[1] > self.max_coeffs:
+            return f"{case.gaussians.sh.shape[1]} SH coefficients (at most {self.max_coeffs})"
+        if cfg.active_sh_degree(case.gaussians.sh.shape[1]) > self.max_sh_degree:
+            return f"SH degree {cfg.sh_degree} (at most {self.max_sh_degree})"
+        if self.camera_model == "simple_pinhole" and c.fx != c.fy:
+            return f"fx {c.fx} != fy {c.fy}"
+        if not self.principal_point and (c.cx != c.width / 2 or c.cy != c.height / 2):
+            return f"principal point ({c.cx}, {c.cy}) off the image centre"
+        if not self.background and any(cfg.background):
+            return f"background {cfg.background}"
+        return None
+
+
 # ---------------------------------------------------------------------------------------------
 # cameras
 # ---------------------------------------------------------------------------------------------
 
 
 @st.composite
-def cameras(draw, *, off_centre: bool = False, anisotropic: bool = False,
-            axis_aligned: bool = False, min_size=(16, 12)) -> refgs.Camera:
+def cameras(draw, caps: Capabilities = Capabilities(), *, off_centre: bool = False,
+            anisotropic: bool = False, axis_aligned: bool = False, min_size=(16, 12)) -> refgs.Camera:
     """A camera 3-6 units from the origin looking at it (OpenCV frame, CNV-01..CNV-03).
 
     Hypothesis draws the image size and a seed; fx in [30, 120] and the pose come from the seed.
-    off_centre: principal point anywhere in the middle 40 % of the image (cx != W/2);
-    anisotropic: fy = fx * [0.7, 1.4]; axis_aligned: identity rotation, centre at (0, 0, -d)
-    (camera z = world z + d exactly, for exact depth ties).
+    off_centre: principal point anywhere in the middle 40 % of the image (cx != W/2), if ``caps``
+    allows; anisotropic: fy = fx * [0.7, 1.4], if ``caps`` is a pinhole model; axis_aligned:
+    identity rotation, centre at (0, 0, -d) (camera z = world z + d exactly, for exact depth ties).
     """
     W = draw(st.integers(min_size[0], MAX_WIDTH), label="width")
     H = draw(st.integers(min_size[1], MAX_HEIGHT), label="height")
     rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1), label="camera_seed"))
     fx = rng.uniform(30.0, 120.0)
     fy = fx * rng.uniform(0.7, 1.4) if anisotropic else fx
+    if caps.camera_model == "simple_pinhole":
+        fy = fx
     cx, cy = W / 2, H / 2
     if off_centre:
         cx, cy = W * rng.uniform(0.3, 0.7), H * rng.uniform(0.3, 0.7)
+        if not caps.principal_point:
+            cx, cy = W / 2, H / 2
     dist = rng.uniform(3.0, 6.0)
     if axis_aligned:
         w2c = np.eye(4)
@@ -275,19 +331,22 @@ def near_degenerate_quaternions(draw, gaussians: refgs.Gaussians, exponents=(-30
 
 
 @st.composite
-def scenes(draw, profile: str, *, camera=None, gaussians=None, max_sh_degree: int = 3,
-           sh_degree: str = "any", background: bool = False, opacity_scale: bool = False,
-           antialiased: bool = False, label: str = "scene") -> Scene:
-    """A complete Scene for ``profile``.
+def cases(draw, caps: Capabilities, *, camera: dict | None = None, gaussians=None,
+          sh_degree: str = "any", background: bool = False, opacity_scale: bool = False,
+          antialiased: bool = False, label: str = "scene") -> Case:
+    """A complete Case inside ``caps`` (its profile, SH degree, camera model, principal point
+    and background).
 
-    camera: a camera strategy (default :func:`cameras`); gaussians: a function camera ->
-    strategy of Gaussians (default :func:`in_front_of`); sh_degree: "any" (0..max), "zero", "max"
-    or "partial" (an explicit degree below what K carries, SH-01); background: draw a random
-    background colour (RAS-06); opacity_scale: draw RenderConfig.opacity_scale (API-02);
+    camera: options of :func:`cameras`; gaussians: a function camera -> strategy of Gaussians
+    (default :func:`in_front_of`); sh_degree: "any" (0..max), "zero", "max" or "partial" (an
+    explicit degree below what K carries, SH-01); background: draw a random background colour
+    (RAS-06) if ``caps`` allows; opacity_scale: draw RenderConfig.opacity_scale (API-02);
     antialiased: gsplat's compensation (PRJ-08).
     """
-    cam = draw(camera if camera is not None else cameras(), label="camera")
+    profile, max_sh_degree = caps.profile, caps.max_sh_degree
+    cam = draw(cameras(caps, **(camera or {})), label="camera")
     g = draw(gaussians(cam) if gaussians is not None else in_front_of(cam), label="gaussians")
+    g = caps.fit_sh(g)
     if sh_degree == "zero":
         deg = 0
     elif sh_degree == "max":
@@ -297,7 +356,7 @@ def scenes(draw, profile: str, *, camera=None, gaussians=None, max_sh_degree: in
     else:
         deg = draw(st.integers(0, max_sh_degree), label="sh_degree")
     bg = (0.0, 0.0, 0.0)
-    if background:
+    if background and caps.background:
         rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1), label="background_seed"))
         bg = tuple(float(x) for x in rng.uniform(0.0, 1.0, 3))
     scale = None
@@ -307,4 +366,4 @@ def scenes(draw, profile: str, *, camera=None, gaussians=None, max_sh_degree: in
     cfg = refgs.RenderConfig(profile=profile, sh_degree=deg, background=bg,
                              antialiased=antialiased, opacity_scale=scale)
     seed = draw(st.integers(0, 2**31 - 1), label="cotangent_seed")
-    return Scene(g, cam, cfg, seed=seed, label=label)
+    return Case(g, cam, cfg, seed=seed, label=label)

@@ -91,6 +91,26 @@ class Profile:
     grad_through_alpha_cap: inria passes the gradient through the cap; gsplat gives none where
         ``o G > alpha_max``.
     tile_rule: "inria" (getRect, integer pixel centres) or "gsplat" (floor/ceil of (m -+ r)/16).
+
+    The fields after ``opacity_cull`` are the same in both profiles; only a named deviation
+    (refgs/deviations.py, docs/spec/deviations.md) changes them:
+
+    quat_order: "wxyz" (CNV-04) or "xyzw" (the quaternion read scalar-last).
+    quat_normalization: "exact" (CNV-05), "none" (R(q) of the raw q) or "eps" (q / max(|q|, 1e-12)).
+    rotation_transposed: Sigma built from R^T instead of R (COV-01).
+    frustum_clamp: the Jacobian's clamp of t.x/t.z, t.y/t.z (PRJ-03).
+    clamp_in_backward: the backward treats a clamped axis as constant (PRJ-07 step 3).
+    exact_clamp_depth_grad: the depth gradient of a clamped axis is exact (PRJ-07; False: #75).
+    sh_dir_reversed: the SH view direction is camera minus mean (SH-03).
+    colour_max: upper clamp of the SH colour (CNV-10: none, ``inf``).
+    pixel_offset: pixel (i, j) is sampled at (j + offset, i + offset) (CNV-08: 0.5).
+    alpha_skip: fragments with alpha < 1/255 are skipped (RAS-04).
+    transmittance_stop: "before" (RAS-05: the saturating fragment is not blended), "after" (it
+        is blended, then the pixel stops) or "off" (every fragment is blended).
+    background_term: the image adds T_final * background (RAS-06).
+    background_grad_factor: times the background term is counted in the backward (RAS-07: 1).
+    conic_offdiag_grad_factor: factor on dL/dB handed to the projection backward (RAS-08: 1).
+    means2d_grad_units: "pixels" (API-05) or "ndc" (the original's: pixels times W/2, H/2).
     """
 
     name: str
@@ -110,6 +130,21 @@ class Profile:
     det_cull_nonpositive: bool
     offscreen_cull: bool
     opacity_cull: bool
+    quat_order: str = "wxyz"
+    quat_normalization: str = "exact"
+    rotation_transposed: bool = False
+    frustum_clamp: bool = True
+    clamp_in_backward: bool = True
+    exact_clamp_depth_grad: bool = True
+    sh_dir_reversed: bool = False
+    colour_max: float = float("inf")
+    pixel_offset: float = 0.5
+    alpha_skip: bool = True
+    transmittance_stop: str = "before"
+    background_term: bool = True
+    background_grad_factor: float = 1.0
+    conic_offdiag_grad_factor: float = 1.0
+    means2d_grad_units: str = "pixels"
 
 
 #: The original 3DGS rasterizer (diff-gaussian-rasterization@59f5f77).

@@ -2,10 +2,19 @@
 
 Spec: docs/spec/stages.md, clauses CNV-04, CNV-05, CNV-06, COV-01, COV-02.
 Derivation of the backward: docs/derivations/covariance.md.
+
+The stage's deviation options (docs/spec/deviations.md) are ``Profile.quat_order``,
+``quat_normalization`` and ``rotation_transposed``; with ``profile=None`` or the reference values
+the stage is exactly COV-01.
 """
 from __future__ import annotations
 
 import numpy as np
+
+from .constants import QUAT_TINY_NORM
+
+#: (w, x, y, z) taken from a quaternion stored (x, y, z, w): the "xyzw" reading of CNV-04
+_XYZW_AS_WXYZ = [3, 0, 1, 2]
 
 
 def normalize_quats(quats: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -45,20 +54,31 @@ def quat_to_rotmat(q_unit: np.ndarray) -> np.ndarray:
     return R
 
 
-def covariance_3d(quats: np.ndarray, log_scales: np.ndarray) -> dict:
+def covariance_3d(quats: np.ndarray, log_scales: np.ndarray, profile=None) -> dict:
     """Sigma = R S S^T R^T with S = diag(exp(log_scales)), R from the normalised quaternion (COV-01).
 
-    quats (N, 4), log_scales (N, 3)  ->  dict with
+    quats (N, 4), log_scales (N, 3), profile: a refgs.Profile whose deviation options apply, or
+    None (the reference)  ->  dict with
       ``cov3d`` (N, 3, 3) symmetric, ``R`` (N, 3, 3), ``scales`` (N, 3), ``q_unit`` (N, 4),
-      ``q_norm`` (N,) -- the last four are what the backward needs.
+      ``q_norm`` (N,) -- the last four are what the backward needs -- and ``options``.
     """
-    q_unit, q_norm, _ = normalize_quats(quats)
+    order, norm, transposed = ("wxyz", "exact", False) if profile is None else (
+        profile.quat_order, profile.quat_normalization, profile.rotation_transposed)
+    q = quats[:, _XYZW_AS_WXYZ] if order == "xyzw" else quats     # deviation quat_xyzw
+    q_unit, q_norm, _ = normalize_quats(q)
+    if norm == "none":                              # deviation quat_unnormalised
+        q_unit, q_norm = q, np.ones_like(q_norm)
+    elif norm == "eps":                             # deviation quat_normalize_eps
+        q_unit = np.where((q_norm < QUAT_TINY_NORM)[:, None], q / q.dtype.type(QUAT_TINY_NORM), q_unit)
     R = quat_to_rotmat(q_unit)
+    if transposed:                                  # deviation rotation_transposed
+        R = np.swapaxes(R, -1, -2)
     scales = np.exp(log_scales)
     M = R * scales[:, None, :]                      # M = R S (columns scaled)
     cov = M @ np.swapaxes(M, -1, -2)
     cov = 0.5 * (cov + np.swapaxes(cov, -1, -2))    # exact symmetry
-    return {"cov3d": cov, "R": R, "scales": scales, "q_unit": q_unit, "q_norm": q_norm}
+    return {"cov3d": cov, "R": R, "scales": scales, "q_unit": q_unit, "q_norm": q_norm,
+            "options": (order, norm, transposed)}
 
 
 def rotmat_to_quat_vjp(q_unit: np.ndarray, v_R: np.ndarray) -> np.ndarray:
@@ -91,11 +111,24 @@ def covariance_3d_backward(fwd: dict, v_cov3d: np.ndarray) -> tuple[np.ndarray, 
     returns  (v_quats (N, 4), v_log_scales (N, 3))
     """
     R, s = fwd["R"], fwd["scales"]
+    order, norm, transposed = fwd.get("options", ("wxyz", "exact", False))
     M = R * s[:, None, :]
     v_M = (v_cov3d + np.swapaxes(v_cov3d, -1, -2)) @ M   # Sigma = M M^T
     v_R = v_M * s[:, None, :]                           # M = R diag(s)
     v_s = np.sum(v_M * R, axis=-2)
     v_log_scales = v_s * s                              # s = exp(log s)
+    if transposed:                                      # deviation rotation_transposed
+        v_R = np.swapaxes(v_R, -1, -2)
     v_q_unit = rotmat_to_quat_vjp(fwd["q_unit"], v_R)
-    v_quats = normalize_quats_vjp(fwd["q_unit"], fwd["q_norm"], v_q_unit)
+    if norm == "none":                                  # deviation quat_unnormalised
+        v_quats = v_q_unit
+    else:
+        v_quats = normalize_quats_vjp(fwd["q_unit"], fwd["q_norm"], v_q_unit)
+        if norm == "eps":                               # deviation quat_normalize_eps
+            tiny = (fwd["q_norm"] < QUAT_TINY_NORM)[:, None]
+            v_quats = np.where(tiny, v_q_unit / v_q_unit.dtype.type(QUAT_TINY_NORM), v_quats)
+    if order == "xyzw":                                 # deviation quat_xyzw
+        v_stored = np.empty_like(v_quats)
+        v_stored[:, _XYZW_AS_WXYZ] = v_quats
+        v_quats = v_stored
     return v_quats, v_log_scales

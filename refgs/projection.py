@@ -20,7 +20,10 @@ def world_to_camera(means: np.ndarray, world_to_camera: np.ndarray) -> np.ndarra
 
 
 def frustum_limits(camera, profile: Profile, dtype) -> tuple:
-    """(lim_neg_x, lim_pos_x, lim_neg_y, lim_pos_y) on t.x/t.z and t.y/t.z (PRJ-03, PRF-02)."""
+    """(lim_neg_x, lim_pos_x, lim_neg_y, lim_pos_y) on t.x/t.z and t.y/t.z (PRJ-03, PRF-02);
+    infinite when ``profile.frustum_clamp`` is off (deviation no_frustum_clamp)."""
+    if not profile.frustum_clamp:
+        return (dtype.type(np.inf),) * 4
     fx, fy, cx, cy = camera.fx, camera.fy, camera.cx, camera.cy
     tan_x = 0.5 * camera.width / fx
     tan_y = 0.5 * camera.height / fy
@@ -149,7 +152,7 @@ def project_gaussians(means: np.ndarray, cov3d: np.ndarray, opacities: np.ndarra
         "conics": conics, "comp": comp, "radii": radii, "visible": visible,
         "tile_rect": tile_rect, "J": J, "cov_cam": cov_cam, "u": u, "v": v,
         "clamped_x": clamped_x, "clamped_y": clamped_y, "tz_safe": tz_safe, "det": det,
-        "det0": det0, "eps2d": eps,
+        "det0": det0, "eps2d": eps, "profile": profile,
     }
 
 
@@ -233,6 +236,9 @@ def project_gaussians_backward(fwd: dict, camera, v_means2d, v_conics, v_depths,
     u, v = fwd["u"], fwd["v"]
     free_x = ~fwd["clamped_x"]
     free_y = ~fwd["clamped_y"]
+    profile = fwd.get("profile")
+    if profile is not None and not profile.clamp_in_backward:   # deviation clamp_forward_only
+        free_x = free_y = np.ones_like(free_x)
     v_tx = np.zeros_like(tz)
     v_ty = np.zeros_like(tz)
     v_tz = -fx / (tz * tz) * v_J[:, 0, 0] - fy / (tz * tz) * v_J[:, 1, 1]
@@ -244,6 +250,10 @@ def project_gaussians_backward(fwd: dict, camera, v_means2d, v_conics, v_depths,
     v_tz += np.where(free_x, -v_u * t[:, 0] / (tz * tz), 0)
     v_ty += np.where(free_y, v_v / tz, 0)
     v_tz += np.where(free_y, -v_v * t[:, 1] / (tz * tz), 0)
+    if profile is not None and not profile.exact_clamp_depth_grad:
+        # deviation clamp_depth_grad_original (#75): the generic 2 fx tx / tz^3 term of J02 kept
+        # with the clamped tx = u tz, i.e. -v_u u / tz more on every clamped axis
+        v_tz += np.where(free_x, 0, -v_u * u / tz) + np.where(free_y, 0, -v_v * v / tz)
     # means2d = (fx tx/tz + cx, fy ty/tz + cy)
     v_tx += fx / tz * v_means2d[:, 0]
     v_ty += fy / tz * v_means2d[:, 1]

@@ -129,6 +129,9 @@ class _Batch:
         oy = (ty * TILE_SIZE).astype(np.float64)[:, None]
         mx = g2d["means2d"][gid_l, 0].astype(np.float64) - ox               # (B, L)
         my = g2d["means2d"][gid_l, 1].astype(np.float64) - oy
+        shift = 0.5 - profile.pixel_offset       # the features sit at +0.5 (deviation pixel_centre_0)
+        if shift:
+            mx, my = mx + shift, my + shift
         A, Bc, C = (g2d["conics"][gid_l, i].astype(np.float64) for i in range(3))
         o = g2d["opacities"][gid_l].astype(np.float64)
         Q = np.stack([-0.5 * A * mx * mx - 0.5 * C * my * my - Bc * mx * my,
@@ -139,6 +142,8 @@ class _Batch:
         margin += _SCREEN_ULPS * np.finfo(dt).eps * (1 + np.log(255.0) + np.abs(np.log(np.maximum(o, 1e-300))))
         with np.errstate(divide="ignore"):
             thr = np.where(o > 0, np.log(ALPHA_MIN / np.maximum(o, 1e-300)), np.inf)
+        if not profile.alpha_skip:               # deviation alpha_skip_off: every pair is a candidate
+            thr = np.full_like(thr, -np.inf)
         cand = approx >= (thr - margin)[:, None, :]
         cand &= approx <= margin[:, None, :]
         cand &= present[:, None, :]
@@ -164,8 +169,8 @@ class _Batch:
         table = np.concatenate([g2d["means2d"][gid_l], g2d["conics"][gid_l],
                                 g2d["opacities"][gid_l][..., None]], axis=-1)   # (B, L, 6)
         vals = np.take(table.reshape(nb * L, 6), fi, axis=0).reshape(lsafe.shape + (6,))
-        px = (self.cols + 0.5).astype(dt)[:, :, None]                       # CNV-08 pixel centres
-        py = (self.rows + 0.5).astype(dt)[:, :, None]
+        px = (self.cols + profile.pixel_offset).astype(dt)[:, :, None]      # CNV-08 pixel centres
+        py = (self.rows + profile.pixel_offset).astype(dt)[:, :, None]
         self.dx = vals[..., 0] - px                                          # d = mean - pixel
         self.dy = vals[..., 1] - py
         self.A, self.B, self.C, self.o = vals[..., 2], vals[..., 3], vals[..., 4], vals[..., 5]
@@ -175,7 +180,8 @@ class _Batch:
         self.G = np.exp(np.minimum(power, 0))
         self.oG = self.o * self.G
         self.alpha = np.minimum(dt.type(profile.alpha_max), self.oG)         # RAS-04
-        valid &= self.alpha >= ALPHA_MIN
+        if profile.alpha_skip:
+            valid &= self.alpha >= ALPHA_MIN
         one_minus = np.where(valid, 1 - self.alpha, 1)
         # running transmittance in list order: the same products in the same order as the
         # per-pixel loop (RAS-05); a carried T_in goes first so the association is the loop's
@@ -184,8 +190,16 @@ class _Batch:
         else:
             incl = np.cumprod(np.concatenate([T_in[:, :, None], one_minus], -1), -1)[..., 1:]
         keep = (incl > T_MIN) if profile.stop_inclusive else (incl >= T_MIN)
-        self.blended = valid & keep & ~done_in[:, :, None]
-        self.done_out = done_in | np.any(valid & ~keep, axis=-1)
+        if profile.transmittance_stop == "before":                           # RAS-05
+            self.blended = valid & keep & ~done_in[:, :, None]
+            self.done_out = done_in | np.any(valid & ~keep, axis=-1)
+        elif profile.transmittance_stop == "after":      # deviation blend_at_cutoff
+            before = np.concatenate([np.ones_like(keep[..., :1]), keep[..., :-1]], -1)
+            self.blended = valid & before & ~done_in[:, :, None]
+            self.done_out = done_in | np.any(valid & ~keep, axis=-1)
+        else:                                             # deviation stop_off
+            self.blended = valid & ~done_in[:, :, None]
+            self.done_out = done_in
         self.T = np.empty_like(incl)                                         # T before each slot
         self.T[..., 0] = T_in
         self.T[..., 1:] = incl[..., :-1]
@@ -198,6 +212,15 @@ class _Batch:
 
 def _init_carry(tiles, dt):
     return np.ones((tiles.size, PIX), dt), np.zeros((tiles.size, PIX), bool)
+
+
+def _background(background, dt, profile: Profile, factor: float = 1.0) -> np.ndarray:
+    """The background as the image adds it (RAS-06): zero without ``profile.background_term``
+    (deviation no_background); times ``factor`` in the backward (deviation background_grad_doubled)."""
+    bg = np.asarray(background, dt)
+    if not profile.background_term:
+        return np.zeros_like(bg)
+    return bg * dt.type(factor) if factor != 1 else bg
 
 
 def composite(g2d: dict, lists: dict, width: int, height: int, profile: Profile,
@@ -227,7 +250,7 @@ def composite(g2d: dict, lists: dict, width: int, height: int, profile: Profile,
         D[r, c] += np.sum(b.w * g2d["depths"][b.gid], axis=-1)[ins]
         T_final[r, c] = b.T_out[ins]
         last[r, c] = np.maximum(last[r, c], b.last_pos[ins])
-    image = C + T_final[..., None] * np.asarray(background, dt)
+    image = C + T_final[..., None] * _background(background, dt, profile)
     return {"image": image, "alpha": 1 - T_final, "depth": D, "n_contrib": last, "final_T": T_final}
 
 
@@ -251,7 +274,7 @@ def composite_backward(g2d: dict, lists: dict, width: int, height: int, profile:
     """
     dt = g2d["means2d"].dtype
     n = g2d["means2d"].shape[0]
-    bg = np.asarray(background, dt)
+    bg = _background(background, dt, profile, profile.background_grad_factor)
     v_alpha = np.zeros((height, width), dt) if v_alpha is None else v_alpha
     v_depth = np.zeros((height, width), dt) if v_depth is None else v_depth
     cols = {"mx": 0, "my": 1, "A": 2, "B": 3, "C": 4, "o": 5, "r": 6, "g": 7, "b": 8, "z": 9}
@@ -301,6 +324,8 @@ def composite_backward(g2d: dict, lists: dict, width: int, height: int, profile:
         v_my = -(b.C * dy + b.B * dx) * v_pow
         v_Acon = -0.5 * dx * dx * v_pow                                     # conic, RAS-08:
         v_Bcon = -dx * dy * v_pow                                           # off-diagonal once
+        if profile.conic_offdiag_grad_factor != 1:       # deviation conic_offdiag_doubled
+            v_Bcon = v_Bcon * profile.conic_offdiag_grad_factor
         v_Ccon = -0.5 * dy * dy * v_pow
         v_o = v_oG * b.G
         v_col = b.w[..., None] * vC[:, :, None, :]

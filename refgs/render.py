@@ -12,6 +12,7 @@ from scipy.special import expit
 
 from .constants import LOG_SCALE_MAX_FRACTION, RIGID_TOL, Profile, get_profile
 from .covariance import covariance_3d, covariance_3d_backward
+from .deviations import apply_deviations
 from .projection import project_gaussians, project_gaussians_backward
 from .rasterize import build_tile_lists, composite, composite_backward
 from .sh import eval_sh_colors, eval_sh_colors_backward, num_sh_coeffs
@@ -31,10 +32,10 @@ def _as_float_array(field: str, value, expected: str) -> np.ndarray:
 
 
 def resolve_profile(config: RenderConfig) -> Profile:
-    """The Profile named by ``config.profile`` (a Profile instance is accepted as is)."""
-    if isinstance(config.profile, Profile):
-        return config.profile
-    return get_profile(config.profile)
+    """The Profile named by ``config.profile`` (a Profile instance is accepted as is), with the
+    options of ``config.deviations`` set (DEV-01; the profile itself when there are none)."""
+    profile = config.profile if isinstance(config.profile, Profile) else get_profile(config.profile)
+    return apply_deviations(profile, config.deviations)
 
 
 def _all_finite(arr: np.ndarray) -> bool:
@@ -145,14 +146,14 @@ def render(gaussians: Gaussians, camera: Camera, config: RenderConfig | None = N
         _fail("RenderConfig.sh_degree", "None or an integer in 0..3", repr(config.sh_degree))
     deg = config.active_sh_degree(g.sh.shape[1])
 
-    cov = covariance_3d(g.quats, g.log_scales)                                  # COV-01
+    cov = covariance_3d(g.quats, g.log_scales, profile)                         # COV-01
     o_sig = expit(g.opacity_logits)                                # CNV-07
     scale = np.ones_like(o_sig) if config.opacity_scale is None \
         else np.asarray(config.opacity_scale, dt)
     proj = project_gaussians(g.means, cov["cov3d"], o_sig * scale, camera, profile,
                              antialiased=config.antialiased)                   # PRJ-*
     campos = camera.center.astype(dt)
-    sh = eval_sh_colors(g.means, g.sh, campos, deg)                            # SH-*
+    sh = eval_sh_colors(g.means, g.sh, campos, deg, profile)                   # SH-*
     opac = o_sig * scale * proj["comp"]
     g2d = {"means2d": proj["means2d"], "conics": proj["conics"], "opacities": opac,
            "colors": sh["colors"], "depths": proj["depths"]}
@@ -212,5 +213,7 @@ def render_backward(out: RenderOutput, v_image, v_alpha=None, v_depth=None) -> G
     v_means, v_cov3d = project_gaussians_backward(proj, cam, v_means2d, vc["v_conics"],
                                                   vc["v_depths"], v_comp)
     v_quats, v_log_scales = covariance_3d_backward(c["cov"], v_cov3d)
+    if profile.means2d_grad_units == "ndc":      # deviation means2d_grad_ndc (HARD-04)
+        v_means2d = v_means2d * np.asarray([W / 2, H / 2], dt)
     return Gradients(means=v_means + v_means_sh, log_scales=v_log_scales, quats=v_quats,
                      opacity_logits=v_logits, sh=v_sh, means2d=v_means2d)

@@ -62,10 +62,13 @@ def sh_basis(degree: int, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return basis, dbasis
 
 
-def eval_sh_colors(means: np.ndarray, sh: np.ndarray, campos: np.ndarray, degree: int) -> dict:
+def eval_sh_colors(means: np.ndarray, sh: np.ndarray, campos: np.ndarray, degree: int,
+                   profile=None) -> dict:
     """Colours of N Gaussians seen from ``campos`` (SH-01..SH-03, CNV-10).
 
-    means (N,3), sh (N,K,3) with K >= (degree+1)**2 (extra coefficients ignored), campos (3,).
+    means (N,3), sh (N,K,3) with K >= (degree+1)**2 (extra coefficients ignored), campos (3,);
+    profile: a refgs.Profile whose deviation options (``sh_dir_reversed``, ``colour_max``) apply,
+    or None (the reference).
     dir = normalize(mean - campos); rgb = sum_k basis_k sh_k + 0.5; colors = max(rgb, 0).
     Returns a dict with ``colors`` (N,3), ``clamped`` (N,3) bool (rgb < 0), and the intermediates
     (``dirs``, ``dist``, ``basis``, ``dbasis``) that the backward needs.
@@ -73,7 +76,11 @@ def eval_sh_colors(means: np.ndarray, sh: np.ndarray, campos: np.ndarray, degree
     nb = num_sh_coeffs(degree)
     if sh.shape[1] < nb:
         raise ValueError(f"Gaussians.sh: degree {degree} needs K >= {nb} coefficients, got K = {sh.shape[1]}")
-    d = means - np.asarray(campos, dtype=means.dtype)
+    reversed_dir = profile is not None and profile.sh_dir_reversed
+    if reversed_dir:                                # deviation sh_dir_reversed
+        d = np.asarray(campos, dtype=means.dtype) - means
+    else:
+        d = means - np.asarray(campos, dtype=means.dtype)
     dist = np.sqrt(np.sum(d * d, axis=-1))
     dist_safe = np.where(dist > 0, dist, 1)
     dirs = d / dist_safe[:, None]
@@ -81,8 +88,12 @@ def eval_sh_colors(means: np.ndarray, sh: np.ndarray, campos: np.ndarray, degree
     rgb = np.einsum("nk,nkc->nc", basis, sh[:, :nb, :]) + means.dtype.type(SH_COLOR_OFFSET)
     clamped = rgb < 0
     colors = np.where(clamped, means.dtype.type(0), rgb)
+    if profile is not None and profile.colour_max < np.inf:      # deviation colour_clamp_01
+        over = rgb > profile.colour_max
+        colors = np.where(over, means.dtype.type(profile.colour_max), colors)
+        clamped = clamped | over
     return {"colors": colors, "clamped": clamped, "dirs": dirs, "dist": dist_safe,
-            "basis": basis, "dbasis": dbasis, "degree": degree}
+            "basis": basis, "dbasis": dbasis, "degree": degree, "dir_sign": -1 if reversed_dir else 1}
 
 
 def eval_sh_colors_backward(fwd: dict, sh: np.ndarray, v_colors: np.ndarray):
@@ -101,4 +112,6 @@ def eval_sh_colors_backward(fwd: dict, sh: np.ndarray, v_colors: np.ndarray):
     dirs = fwd["dirs"]
     # dir = d / |d|: v_d = (v_dir - dir (dir . v_dir)) / |d|
     v_d = (v_dir - dirs * np.sum(dirs * v_dir, axis=-1, keepdims=True)) / fwd["dist"][:, None]
+    if fwd.get("dir_sign", 1) < 0:                  # deviation sh_dir_reversed: d = campos - mean
+        v_d = -v_d
     return v_sh, v_d

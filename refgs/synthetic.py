@@ -1,4 +1,4 @@
-"""Seeded synthetic scenes (the reference benchmark scene, clause BEN-01 in docs/performance.md).
+"""Seeded synthetic scenes (the benchmark scene of docs/performance.md, "How it is measured").
 
 ``benchmark_scene(n, width, height, seed)``: N Gaussians with means uniform in the view frustum at
 depth 2..8, log-scales uniform in [-5, -3], opacities uniform in [0.05, 0.9], uniformly random
@@ -11,7 +11,7 @@ from scipy.special import logit
 
 from .types import Camera, Gaussians
 
-#: benchmark scene parameters (issue 2, "Performance")
+#: benchmark scene parameters (docs/performance.md, "How it is measured": Scenes); our choice
 DEPTH_RANGE = (2.0, 8.0)
 LOG_SCALE_RANGE = (-5.0, -3.0)
 OPACITY_RANGE = (0.05, 0.9)

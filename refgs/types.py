@@ -157,6 +157,8 @@ class RenderConfig:
                 only; default off).
     opacity_scale optional (N,) factor multiplying activated opacities before the alpha cap
                 (DropGaussian's training-time compensation; None = 1).
+    deviations  names of deviations from the profile to switch on (refgs/deviations.py,
+                docs/spec/deviations.md); default none: the reference.
     """
 
     profile: str = "inria"
@@ -164,6 +166,7 @@ class RenderConfig:
     background: tuple = (0.0, 0.0, 0.0)
     antialiased: bool = False
     opacity_scale: Any = None
+    deviations: frozenset = frozenset()
 
     def active_sh_degree(self, k: int) -> int:
         if self.sh_degree is not None:

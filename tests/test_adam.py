@@ -102,6 +102,56 @@ def test_adam_remap_equals_stepping_the_kept_rows():
         assert np.array_equal(new[k][[0, 1, 2, 4]], kept[k])
 
 
+def test_adam_reset_rows():
+    """reset_rows zeroes the moments of the given rows only (bool rows, row indices, or a mask
+    broadcasting against the parameter), keeps the step count, and the next step of those rows
+    is the step of fresh moments at that count (FM-07/FM-08)."""
+    rng = np.random.default_rng(4)
+    p = _params(rng, n=6, k=4)
+    adam = Adam(p)
+    for _ in range(3):
+        adam.step(p, {k: rng.standard_normal(v.shape) for k, v in p.items()}, {k: 0.01 for k in p})
+    m0 = {k: v.copy() for k, v in adam.m.items()}
+    v0 = {k: v.copy() for k, v in adam.v.items()}
+    rows = np.array([True, False, True, False, False, False])
+    adam.reset_rows("means", rows)
+    adam.reset_rows("opacity_logits", np.array([1, 4]))
+    sh_mask = np.zeros((6, 4, 1), bool)
+    sh_mask[:, 1:, 0] = rows[:, None]               # SH coefficients k >= 1 of rows 0 and 2
+    adam.reset_rows("sh", sh_mask)
+    assert np.all(adam.m["means"][rows] == 0) and np.all(adam.v["means"][rows] == 0)
+    assert np.array_equal(adam.m["means"][~rows], m0["means"][~rows])
+    assert np.array_equal(adam.v["means"][~rows], v0["means"][~rows])
+    keep = np.ones(6, bool)
+    keep[[1, 4]] = False
+    assert np.all(adam.m["opacity_logits"][~keep] == 0)
+    assert np.array_equal(adam.m["opacity_logits"][keep], m0["opacity_logits"][keep])
+    full = np.broadcast_to(sh_mask, p["sh"].shape)
+    assert np.all(adam.m["sh"][full] == 0) and np.all(adam.v["sh"][full] == 0)
+    assert np.array_equal(adam.m["sh"][~full], m0["sh"][~full])
+    assert np.array_equal(adam.v["sh"][~full], v0["sh"][~full])
+    assert adam.steps == {"means": 3, "sh": 3, "opacity_logits": 3}
+    # the next step of a reset row: fresh moments, bias-corrected with step count 4
+    g = {k: rng.standard_normal(v.shape) for k, v in p.items()}
+    x0 = p["means"][rows].copy()
+    adam.step(p, g, {k: 0.01 for k in p})
+    b1, b2 = adam.betas
+    m = (1 - b1) * g["means"][rows]
+    v = (1 - b2) * g["means"][rows] ** 2
+    expected = x0 - 0.01 / (1 - b1 ** 4) * m / (np.sqrt(v) / np.sqrt(1 - b2 ** 4) + ADAM_EPS)
+    np.testing.assert_allclose(p["means"][rows], expected, rtol=1e-14, atol=0)
+    # resetting every row is zero()
+    other = Adam(p)
+    other.load_state_arrays(adam.state_arrays())
+    adam.reset_rows("sh", np.ones(6, bool))
+    other.zero("sh")
+    assert np.array_equal(adam.m["sh"], other.m["sh"]) and np.array_equal(adam.v["sh"], other.v["sh"])
+    with pytest.raises(ValueError, match="reset_rows"):
+        adam.reset_rows("sh", np.ones((6, 3, 1), bool))
+    with pytest.raises(ValueError, match="reset_rows"):
+        adam.reset_rows("means", np.array([0.5]))
+
+
 def test_adam_float32_stays_float32():
     p = {"x": np.ones(4, np.float32)}
     adam = Adam(p)

@@ -45,7 +45,7 @@ def test_bench_flags_ties_without_fast64(tmp_path):
     pytest.importorskip("numba")
     from types import SimpleNamespace
 
-    from refgs import bench
+    from refgs.analysis import bench
 
     docs = []
     for backends in (["ref64", "fast64", "fast32"], ["ref64", "fast32"]):
@@ -64,7 +64,7 @@ def test_bench_limits_and_fast64_as_proxy_reference(tmp_path):
     pytest.importorskip("numba")
     from types import SimpleNamespace
 
-    from refgs import bench
+    from refgs.analysis import bench
 
     old = dict(bench.LIMITS)
     bench.LIMITS.update(ref64=(100, 10 ** 9))
@@ -92,7 +92,7 @@ def test_targets_are_judged_and_json_ready():
     """The 50k / 504x378 targets of issue 7 from a result row (plain Python types for JSON)."""
     import json as _json
 
-    from refgs import bench
+    from refgs.analysis import bench
 
     row = {"scene": "synthetic N=50000 504x378", "n": 50000, "size": "504x378", "backends": {
         "ref64": {"forward_backward_s": np.float64(6.0), "speedup_vs_ref64": np.float64(1.0)},
@@ -124,7 +124,7 @@ def test_fast32g_row_uses_geometry64_bands(tmp_path):
     pytest.importorskip("numba")
     from types import SimpleNamespace
 
-    from refgs import bench
+    from refgs.analysis import bench
 
     args = SimpleNamespace(n=[2000], size=["64x48"], backends=["ref64", "fast32", "fast32g"],
                            repeats=1, profile="inria", fern_run=None, out=str(tmp_path / "b"),

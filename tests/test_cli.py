@@ -146,7 +146,8 @@ def test_too_many_views(tmp_path, capsys, tiny_scene):
 
 
 @pytest.mark.parametrize("flag,value", [("--iters", "0"), ("--checkpoint-every", "-1"),
-                                        ("--init-points", "cloud.xyz"), ("--backend", "cuda")])
+                                        ("--init-points", "cloud.xyz"), ("--backend", "cuda"),
+                                        ("--backend", "ref32"), ("--backend", "no_such_mod:obj")])
 def test_bad_flag_values(tmp_path, capsys, tiny_scene, flag, value):
     args = tiny_args(tiny_scene, tmp_path / "run")
     if flag in args:

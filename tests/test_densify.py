@@ -152,7 +152,7 @@ def test_presets():
 
 
 def _tiny_trainer(iters=12, **kw):
-    from refgs.train.backend import get_backend
+    from refgs.backends import get_backend
     from refgs.train.trainer import TrainConfig, Trainer, View
 
     rng = np.random.default_rng(5)
@@ -191,8 +191,8 @@ def test_trainer_reduces_loss():
 
 def test_method_hooks_reach_the_loop():
     """A Method sees every iteration (TRN-08): its opacity_scale reaches the renderer, its
-    gradients are what Adam applies, its frozen rows stay put, after_densify sees the remap."""
-    from refgs.train.trainer import Method, RenderRequest
+    gradients are what Adam applies, its frozen rows stay put, on_densify sees the remap."""
+    from refgs.train.hooks import Method, RenderRequest
 
     class Probe(Method):
         name = "probe"
@@ -200,12 +200,12 @@ def test_method_hooks_reach_the_loop():
         def __init__(self):
             self.remaps, self.steps = [], []
 
-        def render_request(self, trainer, t, rng):
+        def before_render(self, trainer, t, rng):
             scale = np.ones(trainer.n)
             scale[0] = 0.0                       # Gaussian 0 invisible: zero gradient
             return RenderRequest(trainer.gaussians(), opacity_scale=scale)
 
-        def param_gradients(self, trainer, t, request, grads):
+        def after_backward(self, trainer, t, request, grads):
             assert not np.any(grads.means[0]) and not np.any(grads.opacity_logits[0])
             return {k: -v for k, v in grads.params().items()}   # ascend instead of descend
 
@@ -214,7 +214,7 @@ def test_method_hooks_reach_the_loop():
             rows[1] = True
             return {k: rows for k in trainer.params}
 
-        def after_densify(self, trainer, remap):
+        def on_densify(self, trainer, remap):
             self.remaps.append(remap)
 
         def after_step(self, trainer, t, rng):

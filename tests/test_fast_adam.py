@@ -72,7 +72,7 @@ def test_fused_adam_declines_shapes_it_does_not_take():
 
 
 def test_fast_backend_trainer_uses_the_kernel():
-    from refgs.train.backend import get_backend
+    from refgs.backends import get_backend
     b = get_backend("fast")
     p = {"x": np.ones((4, 3))}
     from refgs.train.trainer import Trainer  # noqa: F401  (the trainer passes backend.adam_update)

@@ -50,7 +50,7 @@ def test_thread_count_does_not_change_the_result():
 
 
 def test_fast_backend_offers_it_to_the_loss():
-    from refgs.train.backend import get_backend
+    from refgs.backends import get_backend
     from refgs.train.loss import photometric_loss
     be = get_backend("fast")
     rng = np.random.default_rng(5)

@@ -8,7 +8,7 @@ import pytest
 from PIL import Image
 
 from refgs.cli import main
-from refgs.figures import load_figure_run, reinit_iterations
+from refgs.analysis.figures import load_figure_run, reinit_iterations
 
 from test_cli import run_cli, tiny_args, write_tiny_scene
 
@@ -76,7 +76,7 @@ def test_record_keeps_what_tables_and_curves_need(fig_runs, tmp_path, capsys):
     they are; refgs table and refgs figures take the records (figures without renders)."""
     import json
 
-    from refgs.records import RECORD_DECIMALS
+    from refgs.analysis.records import RECORD_DECIMALS
     runs, flat = fig_runs
     rec = tmp_path / "records"
     rc, stdout, err = run_cli(["record", runs["fm"], runs["fm_noreinit"], flat, "--out", rec], capsys)

@@ -1,4 +1,4 @@
-"""Property tests of the paper's method primitives (issue 6 item 8; clauses FM-01..FM-05, DG-01).
+"""Property tests of the paper's method primitives (clauses FM-01..FM-05, DG-01).
 
 Statistical tests state their false-alarm rate: the probability that the test fails for a
 correct implementation and a fresh random seed.  Seeds are fixed here, so each run is

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from refgs.cli import main
-from refgs.flatness import flatness_curve
-from refgs.tables import aggregate, load_run, markdown, method_label
+from refgs.analysis.flatness import flatness_curve
+from refgs.analysis.tables import aggregate, load_run, markdown, method_label
 
 from test_cli import run_cli, tiny_args, write_tiny_scene
 
@@ -29,8 +29,8 @@ def runs(tmp_path_factory):
 
 
 def test_fm12_flatness_curve(runs):
-    from refgs.cli import _restore
-    _, _, tr = _restore(runs[("fm", 3, ())])
+    from refgs.runs import load
+    tr = load(runs[("fm", 3, ())]).trainer
     c = flatness_curve(tr, gammas=(0.0, 0.5, 3.0), seeds=3)
     assert c["p"] == 1.0 and c["alpha"] == 1.0 and c["clamp"] == "none"
     for split in ("train", "test"):
@@ -121,7 +121,19 @@ def test_fm13_baseline_deltas(runs, tmp_path, capsys):
     rc, out, _ = run_cli(["table", *runs.values(), "--baseline", "fm", "--out", tmp_path], capsys)
     assert rc == 0 and "Δssim vs fm" in out
     header = (tmp_path / "table.csv").read_text().splitlines()[0]
-    assert header.endswith("psnr_delta_vs_fm,ssim_delta_vs_fm,lpips_vgg_delta_vs_fm")
+    assert "psnr_delta_vs_fm,ssim_delta_vs_fm,lpips_vgg_delta_vs_fm,psnr_n_pairs" in header
     assert (tmp_path / "table.png").stat().st_size > 0
+    # FM-16: 3dgs (seeds 3, 4) pairs with fm (seed 3) at seed 3 only; fm[perturb=scale] (seed 4)
+    # has no seed in common with fm; the tiny runs have no LPIPS
+    doc = json.loads((tmp_path / "table.json").read_text())
+    comp = {(c["method"], c["metric"]): c for c in doc["comparisons"]}
+    assert set(comp) == {("3dgs", "psnr"), ("3dgs", "ssim")}
+    psnr = {k: json.loads((runs[k] / "metrics.json").read_text())["psnr"] for k in (("3dgs", 3, ()), ("fm", 3, ()))}
+    c = comp[("3dgs", "psnr")]
+    assert c["n_pairs"] == 1 and c["ci95"] is None and c["p_value"] is None and c["runs_needed"] is None
+    assert c["mean_diff"] == pytest.approx(psnr[("3dgs", 3, ())] - psnr[("fm", 3, ())])
+    reasons = {u["method"]: u["reason"] for u in doc["unpaired"]}
+    assert "no seed in common" in reasons["fm[perturb=scale]"] and "missing" in reasons["3dgs"]
+    assert "n = 1: no interval" in out and (tmp_path / "forest.png").stat().st_size > 0
     rc, _, err = run_cli(["table", *runs.values(), "--baseline", "nope", "--out", tmp_path / "x"], capsys)
     assert rc == 2 and "--baseline 'nope'" in err and not (tmp_path / "x").exists()

@@ -1,4 +1,4 @@
-"""The ablation variants of the method (issue 8 item 1; FM-10, FM-11, FM-01 iso_fixed).
+"""The ablation variants of the method (FM-10, FM-11, FM-01 iso_fixed).
 
 Same tiny synthetic scene as tests/test_method_training.py.
 """
@@ -11,7 +11,7 @@ import pytest
 
 from refgs.methods.flat_minima import (OPACITY_SIGMA, ROTATION_SIGMA, SCALE_SIGMA, axis_angle_quats,
                                        quat_multiply)
-from refgs.methods.training import FlatMinimaConfig, FlatMinimaMethod
+from refgs.methods.flat_minima_method import FlatMinimaConfig, FlatMinimaMethod
 
 from test_method_training import SMALL, make_trainer
 
@@ -19,7 +19,7 @@ from test_method_training import SMALL, make_trainer
 def _request(perturb, t=30, iters=40, **kw):
     method = FlatMinimaMethod(FlatMinimaConfig(reinit_interval=10, reinit_window=4, perturb=perturb, **kw))
     tr = make_trainer(method, iters=iters)
-    req = method.render_request(tr, t, np.random.default_rng(7))
+    req = method.before_render(tr, t, np.random.default_rng(7))
     return tr, method, req
 
 
@@ -51,7 +51,7 @@ def test_fm10_magnitudes_follow_gamma_alpha_and_the_named_sigmas():
         for seed in range(n_rep):
             method = FlatMinimaMethod(FlatMinimaConfig(perturb=perturb, p=1.0, reinit=False))
             tr = make_trainer(method, iters=40)
-            req = method.render_request(tr, 20, np.random.default_rng(seed))   # alpha = 1/2
+            req = method.before_render(tr, 20, np.random.default_rng(seed))   # alpha = 1/2
             a, b = getattr(tr.gaussians(), field), getattr(req.gaussians, field)
             if perturb == "rotation":
                 # q' = q * q(omega): the relative rotation's vector part is sin(|w|/2) w/|w|
@@ -104,8 +104,8 @@ def test_fm11_mixed_gradient_exactly(monkeypatch):
     theta = tr.gaussians()
     theta = type(theta)(**{k: v.copy() for k, v in tr.params.items()})
     out = {}
-    orig = method.param_gradients
-    monkeypatch.setattr(method, "param_gradients",
+    orig = method.after_backward
+    monkeypatch.setattr(method, "after_backward",
                         lambda trainer, t, request, grads: out.setdefault("g", orig(trainer, t, request, grads)))
     tr.step()
     (g_hat, v1, c1, grads_hat), (g_clean, v2, c2, grads_clean) = seen["calls"]
@@ -126,7 +126,7 @@ def test_fm01_iso_fixed_sigma_is_half_the_densification_threshold():
     tr = make_trainer(method, iters=40)
     expected = 0.5 * tr.cfg.densify.percent_dense * tr.extent
     assert method.fixed_sigma == pytest.approx(expected)
-    req = method.render_request(tr, 10, np.random.default_rng(0))
+    req = method.before_render(tr, 10, np.random.default_rng(0))
     d = req.gaussians.means - tr.params["means"]
     # delta = gamma * sigma * R z: its norm^2 / (gamma sigma)^2 is chi-square(3) per Gaussian
     x = np.sum(d * d, axis=1) / (2.0 * expected) ** 2

@@ -1,4 +1,4 @@
-"""The paper's method and DropGaussian inside the trainer (issue 6 item 8; FM-05..FM-08, DG-02).
+"""The paper's method and DropGaussian inside the trainer (FM-05..FM-08, DG-02, TRN-08).
 
 A tiny synthetic scene (views rendered by refgs from random Gaussians) trains a few dozen
 iterations; reinit interval and window are scaled down (interval 10, window 4) so every rule is
@@ -10,10 +10,14 @@ import numpy as np
 import pytest
 
 import refgs
-from refgs.methods.training import DropGaussianMethod, FlatMinimaConfig, FlatMinimaMethod, make_method
-from refgs.train.backend import get_backend
+from refgs.errors import ConfigError
+from refgs.methods import METHOD_NAMES, make_method, method_params
+from refgs.methods.dropgaussian_method import DropGaussianMethod
+from refgs.methods.flat_minima_method import FlatMinimaConfig, FlatMinimaMethod
+from refgs.backends import get_backend
 from refgs.train.densify import DensifyConfig
-from refgs.train.trainer import Method, TrainConfig, Trainer, View
+from refgs.train.hooks import Method
+from refgs.train.trainer import TrainConfig, Trainer, View
 
 W, H = 32, 24
 N_TRUE = 30
@@ -36,17 +40,23 @@ def scene(seed=0):
     return views[:3], views[3:], init
 
 
-def make_trainer(method: Method, iters=40, densify=None, seed=0):
-    train_views, test_views, init = scene()
+def make_config(method_name: str, iters=40, densify=None, seed=0, params=None) -> TrainConfig:
     dcfg = densify or DensifyConfig(start=3, interval=5, until=iters, grad_threshold=0.0002,
                                     opacity_reset_interval=10_000)
-    cfg = TrainConfig(scene="synthetic", views=3, iters=iters, seed=seed, densify=dcfg, lpips=False,
-                      method=method.name)
+    return TrainConfig(scene="synthetic", views=3, iters=iters, seed=seed, densify=dcfg, lpips=False,
+                       method=method_name, method_params=params or {})
+
+
+def make_trainer(method: Method, iters=40, densify=None, seed=0):
+    train_views, test_views, init = scene()
+    cfg = make_config(method.name, iters, densify, seed)
     return Trainer(cfg, train_views, test_views, init, extent=4.0, backend=get_backend("reference"),
                    method=method)
 
 
 SMALL = FlatMinimaConfig(reinit_interval=10, reinit_window=4)
+#: the one-line error of an unknown --method (the same from make_method and TrainConfig.validate)
+UNKNOWN_METHOD = r"^--method: expected one of \['3dgs', 'dropgaussian', 'fm'\], got 'sam'$"
 
 
 def test_fm05_gradients_at_theta_hat():
@@ -193,15 +203,65 @@ def test_dg02_dropgaussian_scales_opacity_in_training_only():
 
 def test_dg02_method_names_and_plugin():
     """DG-02: --method {3dgs, fm, dropgaussian} and the plug-in --method dropgaussian --fm."""
+    assert METHOD_NAMES == ("3dgs", "dropgaussian", "fm")
     assert type(make_method("3dgs")) is Method
     assert isinstance(make_method("fm"), FlatMinimaMethod)
     assert isinstance(make_method("dropgaussian"), DropGaussianMethod)
-    plug = make_method("dropgaussian", fm=True)
+    plug = make_method("dropgaussian", {"fm": True})
     assert isinstance(plug, FlatMinimaMethod) and plug.drop is not None
     params = plug.params_dict()
-    assert params["fm_gamma"] == 2.0 and params["fm_p"] == 0.3 and params["drop_r_max"] == 0.2
-    with pytest.raises(ValueError, match="--method"):
+    assert params["gamma"] == 2.0 and params["p"] == 0.3 and params["r_max"] == 0.2
+    on_3dgs = make_method("3dgs", {"fm": True, "gamma": 1.0})
+    assert type(on_3dgs) is FlatMinimaMethod and on_3dgs.drop is None and on_3dgs.config.gamma == 1.0
+    assert make_method("dropgaussian", {"r_max": 0.3}).r_max == 0.3
+    with pytest.raises(ConfigError, match=UNKNOWN_METHOD):
         make_method("sam")
+    with pytest.raises(ConfigError, match="method parameters: unknown"):
+        make_method("fm", {"gama": 1.0})
+
+
+def test_dg02_recorded_parameters_rebuild_the_method():
+    """DG-02: method_params records every parameter (given over defaults); make_method of the
+    record builds the same method; options that do not apply are refused naming the option."""
+    rec = method_params("fm", {"gamma": 1.5, "reinit_window": 7})
+    assert list(rec) == list(FlatMinimaConfig.__dataclass_fields__)
+    assert rec["gamma"] == 1.5 and rec["reinit_window"] == 7 and rec["p"] == 0.3 and "fm" not in rec
+    assert make_method("fm", rec).config == FlatMinimaConfig(gamma=1.5, reinit_window=7)
+    plug = method_params("dropgaussian", {"r_max": 0.1}, fm=True)
+    assert plug["r_max"] == 0.1 and plug["fm"] is True and list(plug)[-2:] == ["r_max", "fm"]
+    rebuilt = make_method("dropgaussian", plug)
+    assert rebuilt.name == "dropgaussian+fm" and rebuilt.drop.r_max == 0.1
+    assert method_params("3dgs", {}) == {} and method_params("dropgaussian", {}) == {"r_max": 0.2}
+    assert method_params("fm", {"gamma": None}) == method_params("fm", {})
+    with pytest.raises(ConfigError, match=r"^--fm-\*: flat-minima options need --method fm or --fm$"):
+        method_params("dropgaussian", {"gamma": 1.0})
+    with pytest.raises(ConfigError, match=r"^--drop-r-max: only with --method dropgaussian$"):
+        method_params("fm", {"r_max": 0.1})
+    with pytest.raises(ConfigError, match="--method"):
+        method_params("sam", {})
+
+
+def test_trn08_method_names_are_checked_by_the_caller():
+    """TRN-08: training does not import the methods; TrainConfig.validate checks --method against
+    the names its caller gives, and a trainer without a method object runs only plain 3DGS."""
+    with pytest.raises(ConfigError, match=UNKNOWN_METHOD):
+        make_config("sam").validate(METHOD_NAMES)
+    assert make_config("sam").validate() is not None          # no names given: not checked
+    train_views, test_views, init = scene()
+    with pytest.raises(ConfigError, match="--method fm"):
+        Trainer(make_config("fm"), train_views, test_views, init, 4.0, get_backend("reference"))
+    plain = Trainer(make_config("3dgs"), train_views, test_views, init, 4.0, get_backend("reference"))
+    assert type(plain.method) is Method
+    import ast
+    from pathlib import Path
+    for path in sorted((Path(refgs.__file__).parent / "train").glob("*.py")):
+        module = path.stem
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom):
+                assert "methods" not in (node.module or "").split("."), (module, node.module)
+            elif isinstance(node, ast.Import):
+                assert not any("methods" in a.name.split(".") for a in node.names), module
 
 
 def test_fm_training_is_deterministic():
@@ -244,7 +304,7 @@ def test_fm06_standard_opacity_reset_at_a_reinit_iteration_happens_once(standard
     """FM-06/FM-07: at a reinit iteration the opacity is reset exactly once -- by the standard
     schedule when it is due at that iteration (interval 10 = the reinit interval here), else by
     the reinit -- and ends <= 0.01 with zeroed Adam moments; SH-rest moments are zeroed too."""
-    import refgs.methods.training as mt
+    import refgs.methods.flat_minima_method as mt
     import refgs.train.trainer as tt
     calls = []
 
@@ -267,3 +327,30 @@ def test_fm06_standard_opacity_reset_at_a_reinit_iteration_happens_once(standard
     assert np.all(refgs.render.__globals__["expit"](p["opacity_logits"]) <= 0.01 + 1e-12)
     assert not tr.adam.m["opacity_logits"].any() and not tr.adam.v["opacity_logits"].any()
     assert not tr.adam.m["sh"][:, 1:].any() and not tr.adam.v["sh"][:, 1:].any()
+
+
+def test_trn09_fm_state_resumes_bit_exactly():
+    """TRN-09: a checkpoint inside a frozen window (reinit at 10, window 4, densification at 10)
+    restores the method's state (``method/frozen_until``) and the optimiser's, and the resumed
+    run ends with the parameters of the uninterrupted one."""
+    dcfg = DensifyConfig(start=5, interval=5, until=40, grad_threshold=1e-9, opacity_reset_interval=10_000)
+    full = make_trainer(FlatMinimaMethod(SMALL), iters=30, densify=dcfg, seed=2)
+    for _ in range(11):
+        full.step()
+    arrays = {k: np.array(v) for k, v in full.state_arrays().items()}
+    meta = full.state_meta()
+    assert "method/frozen_until" in arrays and np.all(arrays["method/frozen_until"] == 14)
+    for _ in range(5):
+        full.step()
+    train_views, test_views, _ = scene()
+    params = {k[6:]: v for k, v in arrays.items() if k.startswith("param/")}
+    method = FlatMinimaMethod(SMALL)
+    resumed = Trainer(make_config("fm", 30, dcfg, 2), train_views, test_views, params, 4.0,
+                      get_backend("reference"), method)
+    resumed.load_state(arrays, meta)
+    assert np.array_equal(method.frozen_until, arrays["method/frozen_until"])
+    for _ in range(5):
+        resumed.step()
+    for k in full.params:
+        assert np.array_equal(full.params[k], resumed.params[k]), k
+        assert np.array_equal(full.adam.m[k], resumed.adam.m[k]), k

@@ -26,10 +26,10 @@ from oracle.clauses import RENDERER_PREFIXES, expand_selection, load_clauses, re
 from oracle.compare import compare_exact, compare_gradient, compare_values
 from oracle.evaluate import Context
 from oracle.hard_cases import HARD_CASES
-from oracle.protocol import BackendError, Scene, describe_backend, load_backend, raw_gradients, to_activated
-from oracle.report import SCHEMA, atomic_write_text, load_scene, save_scene
+from oracle.protocol import BackendError, Case, describe_backend, load_backend, raw_gradients, to_activated
+from oracle.report import SCHEMA, atomic_write_text, load_case, save_case
 from oracle.runner import Settings, run, run_check
-from oracle.strategies import MAX_GAUSSIANS, MAX_HEIGHT, MAX_WIDTH
+from oracle.strategies import MAX_GAUSSIANS, MAX_HEIGHT, MAX_WIDTH, Capabilities
 from oracle.ties import tie_distances
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -47,7 +47,7 @@ def _scene(n=3, seed_=0, profile="inria", **cfg):
     cam = refgs.Camera.look_at([0.3, -0.2, -4.0], [0, 0, 0], fx=50.0, width=40, height=30)
     g = refgs.Gaussians(rng.normal(0, 0.5, (n, 3)), rng.uniform(-2.5, -1.5, (n, 3)),
                         rng.normal(size=(n, 4)), rng.uniform(0, 3, n), rng.normal(0, 0.5, (n, 16, 3)))
-    return Scene(g, cam, refgs.RenderConfig(profile=profile, **cfg), seed=seed_, label="test")
+    return Case(g, cam, refgs.RenderConfig(profile=profile, **cfg), seed=seed_, label="test")
 
 
 # ---- clauses (ORC-09) ---------------------------------------------------------------------------
@@ -306,7 +306,7 @@ def test_orc02_backend_loading_and_capabilities():
 def test_hard_case_builders_make_small_valid_scenes(profile):
     for cid, case in HARD_CASES.items():
         for s in range(3):
-            sc = case.build(np.random.default_rng(s), profile)
+            sc = case.build(np.random.default_rng(s), Capabilities(profile))
             assert sc.n <= MAX_GAUSSIANS and sc.camera.width <= MAX_WIDTH and sc.camera.height <= MAX_HEIGHT
             out = refgs.render(sc.gaussians, sc.camera, sc.config)
             assert np.all(np.isfinite(out.image)), cid
@@ -340,10 +340,10 @@ def test_strategies_make_small_valid_scenes_for_every_check():
 def test_orc06_reproducer_round_trip(tmp_path):
     s = _scene(4, 2, "gsplat", background=(0.1, 0.2, 0.3), sh_degree=2,
                opacity_scale=np.array([0.5, 1.0, 1.5, 0.0]))
-    p = save_scene(tmp_path / "r.npz", s, check="forward_generic", clauses="RAS-06")
+    p = save_case(tmp_path / "r.npz", s, check="forward_generic", clauses="RAS-06")
     with np.load(p, allow_pickle=False) as z:
         assert "means" in z.files
-    back, meta = load_scene(p)
+    back, meta = load_case(p)
     assert meta == {"check": "forward_generic", "clauses": "RAS-06"}
     for f in refgs.Gaussians.FIELDS:
         np.testing.assert_array_equal(getattr(back.gaussians, f), getattr(s.gaussians, f))
@@ -352,7 +352,7 @@ def test_orc06_reproducer_round_trip(tmp_path):
     assert back.camera.width == 40 and back.seed == 2
     (tmp_path / "bad.npz").write_bytes(b"not a zip")
     with pytest.raises(ValueError, match="bad.npz"):
-        load_scene(tmp_path / "bad.npz")
+        load_case(tmp_path / "bad.npz")
 
 
 def test_orc07_atomic_write_leaves_no_temporary(tmp_path):

@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from refgs.cli import Interrupted, build_parser, config_from_args, main, resume, train
+from refgs.cli import build_parser, config_from_args, main
+from refgs.runs import Interrupted, load, resume, train
 from refgs.train.checkpoint import load_checkpoint, rng_from_state, rng_state, save_checkpoint
 
 from test_cli import tiny_args, write_tiny_scene
@@ -57,9 +58,7 @@ def reference(scene, tmp_path_factory):
 
 def assert_restored_equals_snapshot(run: Path, t: int):
     """Everything loaded from the checkpoint equals the uninterrupted run's state at t."""
-    from refgs.cli import _restore
-
-    _, _, trainer = _restore(run)
+    trainer = load(run).trainer
     arrays, meta = SNAPSHOTS[t]
     got = trainer.state_arrays()
     assert sorted(got) == sorted(arrays)

@@ -29,13 +29,13 @@ def _has_numba() -> bool:
     pytest.param("fast", marks=pytest.mark.skipif(not _has_numba(), reason="needs numba")),
     pytest.param("reference", marks=pytest.mark.slow)])
 def test_fern_three_views(tmp_path, backend):
-    from refgs.cli import build_parser, config_from_args, train
+    from refgs.cli import build_parser, config_from_args
     from refgs.data.init import init_gaussians_from_points
     from refgs.data.pointcloud import read_ply
     from refgs.metrics.psnr import psnr
     from refgs.train.trainer import Trainer
-    from refgs.train.backend import get_backend
-    from refgs.cli import load_views
+    from refgs.backends import get_backend
+    from refgs.runs import load_views, train
 
     out = tmp_path / "fern3"
     # densification brought forward (from 100 every 100: at 200) so that this short run densifies

@@ -37,7 +37,9 @@ import numpy as np
 from scipy.special import expit
 
 import refgs
-from refgs.notebook_helpers import add_ellipse, cov2d_matrix, draw_tiles, show_image
+
+# helpers beside this notebook (docs/notebooks/_helpers.py)
+from _helpers import add_ellipse, cov2d_matrix, draw_tiles, show_image
 
 # %% [markdown]
 # ## The parameters

@@ -35,7 +35,9 @@ import numpy as np
 
 import refgs
 from refgs.constants import ALPHA_MIN
-from refgs.notebook_helpers import FD_STEP, fd_gradient, relative_error, show_image, text_table
+
+# helpers beside this notebook (docs/notebooks/_helpers.py)
+from _helpers import FD_STEP, fd_gradient, relative_error, show_image, text_table
 
 # %% [markdown]
 # ## A scene away from the model's discontinuities

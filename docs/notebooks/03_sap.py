@@ -35,7 +35,9 @@ from scipy.special import erfc
 import refgs
 from refgs.methods import (CLAMP_MODES, GAMMA, P_PERTURB, clamp_displacement, clipped_fraction,
                            magnitude_schedule, perturb_probability, sap_offsets)
-from refgs.notebook_helpers import add_ellipse, clamp_bound
+
+# helpers beside this notebook (docs/notebooks/_helpers.py)
+from _helpers import add_ellipse, clamp_bound
 
 print(f"gamma = {GAMMA}, p = {P_PERTURB}, clamp readings {CLAMP_MODES}")
 

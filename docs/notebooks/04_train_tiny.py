@@ -35,11 +35,14 @@ import time
 import matplotlib.pyplot as plt
 import numpy as np
 
-import refgs.methods.training  # noqa: F401  (registers --method fm and dropgaussian)
+import refgs
+from refgs.backends import get_backend
+from refgs.methods import METHOD_NAMES, make_method
 from refgs.metrics import psnr
-from refgs.notebook_helpers import show_image, text_table, tiny_demo_views
-from refgs.train.backend import ReferenceBackend
 from refgs.train.trainer import TrainConfig, Trainer
+
+# helpers beside this notebook (docs/notebooks/_helpers.py)
+from _helpers import show_image, text_table, tiny_demo_views
 
 ITERS = 80
 SEED = 0
@@ -79,8 +82,8 @@ def make_trainer(method: str) -> Trainer:
         "dropgaussian", {"start": ITERS}, scene=str(data["scene"]), views=3, iters=ITERS,
         seed=SEED, images="images", resolution=4, method=method, sh_degree=1, lpips=False,
         checkpoint_every=0)
-    return Trainer(cfg.validate(), train, test, data["gaussians"].to_dict(), data["extent"],
-                   ReferenceBackend())
+    return Trainer(cfg.validate(METHOD_NAMES), train, test, data["gaussians"].to_dict(),
+                   data["extent"], get_backend("reference"), make_method(method))
 
 
 runs, before = {}, None
@@ -105,7 +108,7 @@ for method in ["3dgs", "fm"]:
 
 # %%
 fm = runs["fm"]
-request = fm.method.render_request(fm, ITERS, np.random.default_rng(123))
+request = fm.method.before_render(fm, ITERS, np.random.default_rng(123))
 view = train[0]
 rcfg = refgs.RenderConfig(profile="inria", sh_degree=1)           # as the trainer renders
 perturbed = np.clip(fm.backend.render(request.gaussians, view.camera, rcfg).image, 0, 1)

@@ -35,7 +35,7 @@ import numpy as np
 
 import refgs
 from oracle.protocol import load_backend
-from oracle.report import load_scene, summary_text, write_report
+from oracle.report import load_case, summary_text, write_report
 from oracle.runner import Settings, run
 
 work = Path("oracle-notebook-report").absolute()      # cf. the command line's oracle-report/
@@ -88,9 +88,11 @@ assert bad.exit_status == 1 and "RAS-08" in bad.failed_clauses
 # ## The minimal failing scene and its replay command
 #
 # Each failure comes shrunk — hypothesis first, then the oracle's own shrinker, which removes
-# Gaussians and crops the image while the check still fails — down to one Gaussian and one pixel
-# here. The report prints the scene's parameters, the reproducer file (`.npz`, loaded without
-# pickles) and the command that replays it.
+# Gaussians and crops the image while the check still fails *for the same reason* — down to one
+# Gaussian and a few pixels here. (It stops cropping where a smaller image would move the frustum
+# clamp's limits past a Gaussian: a clamped Gaussian could show another defect than the one found.)
+# The report prints the scene's parameters, the reproducer file (`.npz`, loaded without pickles)
+# and the command that replays it.
 
 # %%
 failure = next(r for r in bad.results if r.status == "fail" and "RAS-08" in r.check.clauses).failure
@@ -103,7 +105,8 @@ print("\nreproducer:", failure["reproducer"])
 print("replay:    ", failure["replay"])
 
 # %%
-assert sc["n_gaussians"] <= 2 and sc["width"] * sc["height"] <= 4
+shrunk = failure["shrink"]
+assert sc["n_gaussians"] <= 2 and sc["width"] * sc["height"] < shrunk["image"][0][0] * shrunk["image"][0][1]
 assert failure["replay"].startswith("python -m oracle replay ")
 
 # %% [markdown]
@@ -129,7 +132,7 @@ rc_refgs = replay("oracle.adapters.refgs_backend:refgs_float64")
 # projection Jacobian) differ from the reference while the image and the colour gradients agree.
 
 # %%
-scene, meta = load_scene(failure["reproducer"])
+scene, meta = load_case(failure["reproducer"])
 ref_out = refgs.render(scene.gaussians, scene.camera, scene.config)
 bad_out = planted.obj.render(scene.gaussians, scene.camera, scene.config)
 v = np.ones_like(ref_out.image)

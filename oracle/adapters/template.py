@@ -19,7 +19,15 @@ The contract (oracle/protocol.py, ORC-01):
   parameters): means, log_scales, quats, opacity_logits, sh, and optionally means2d in pixels.
   If your renderer takes activated parameters, map your gradients back with
   :func:`oracle.protocol.raw_gradients`.
-* Capabilities are plain attributes (below).  Checks outside them report "n/a".
+* The helpers ``to_activated`` and ``raw_gradients`` work in the dtype of the Gaussians they are
+  given.  The oracle hands you float64 arrays (holding values exact in your dtype): cast first,
+  ``gaussians.astype(self.dtype)``, and pass the cast Gaussians to both helpers, or a float32
+  backend returns float64 gradients and fails ``backward_dtype`` (CNV-11).
+* Capabilities are plain attributes (below).  Checks outside them report "n/a" with the reason,
+  and the oracle draws no case outside them (SH degree, camera model, principal point,
+  background, opacity_scale, antialiasing).
+* Differences you know of and accept can be declared in ``known_differences`` (check, clause,
+  reason, link): they are reported as "known", not as failures, until they stop happening.
 * Stage functions (``stage_covariance``, ``stage_projection``, ``stage_sh``,
   ``stage_composite``) are optional; each one you define gets a per-stage check.
 """
@@ -42,6 +50,11 @@ class TemplateBackend:
     max_sh_degree = 3              # TODO: the highest SH degree you render
     supports_antialiased = False   # TODO: gsplat's rasterize_mode="antialiased" (gsplat profile only)
     supports_opacity_scale = True  # TODO: RenderConfig.opacity_scale (per-Gaussian opacity factor)
+    supports_background = True     # TODO: False if you render on black only (RenderConfig.background)
+    supports_principal_point = True  # TODO: False if you assume cx = W/2, cy = H/2
+    camera_model = "pinhole"       # TODO: "simple_pinhole" if you take one focal length (fx == fy)
+    known_differences = ()         # TODO: e.g. ({"check": "forward_coverage", "clause": "PRF-04",
+    #                                  "reason": "...", "link": "https://..."},)
 
     def render(self, gaussians: refgs.Gaussians, camera: refgs.Camera, config: refgs.RenderConfig):
         """TODO: call your renderer.  Typical conversion for an activated-parameter renderer:
@@ -55,20 +68,23 @@ class TemplateBackend:
         """
         if len(gaussians) and np.any(~np.any(np.asarray(gaussians.quats) != 0, axis=-1)):
             raise ValueError("Gaussians.quats: zero quaternion (CNV-05)")
-        to_activated(gaussians)       # shows the helper; validates quaternions the same way
-        out = refgs.render(gaussians.astype(self.dtype), camera, config)
+        g = gaussians.astype(self.dtype)   # your dtype first: the helpers keep the dtype they get
+        to_activated(g)               # shows the helper; validates quaternions the same way
+        out = refgs.render(g, camera, config)
         return {"image": out.image, "alpha": out.alpha, "depth": out.depth,
                 "n_contrib": out.n_contrib, "radii": out.radii, "means2d": out.means2d,
                 "depths": out.depths, "conics": out.conics, "colors": out.colors,
-                "_native": out}      # anything else you need for the backward
+                "_native": out, "_gaussians": g}   # anything else you need for the backward
 
     def render_backward(self, out, v_image, v_alpha=None, v_depth=None):
         """TODO: gradients of L = <v_image, image> + <v_alpha, alpha> + <v_depth, depth>.
 
         With activated-parameter gradients v_means, v_scales, v_quats (w.r.t. the unit
-        quaternion), v_opacities, v_sh from your renderer:
+        quaternion), v_opacities, v_sh from your renderer, and the Gaussians *cast to your
+        dtype* in render (``out["_gaussians"]``; with the oracle's float64 Gaussians the
+        gradients would come back float64):
 
-            return raw_gradients(gaussians, v_means, v_scales, v_quats, v_opacities, v_sh,
+            return raw_gradients(out["_gaussians"], v_means, v_scales, v_quats, v_opacities, v_sh,
                                  v_means2d=v_means2d_pixels, quats_were_unit=True)
         """
         native = out["_native"]

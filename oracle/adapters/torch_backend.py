@@ -2,7 +2,7 @@
 
 Written from the model as stated in docs/spec (conventions.md, stages.md, profiles.md), not by
 calling refgs' stage functions, so that refgs' hand-derived backward can be checked against
-autograd of a second, separately written forward (issue 3 item 4, issue 5 item 8).  Only refgs'
+autograd of a second, separately written forward.  Only refgs'
 *containers* (Gaussians, Camera, RenderConfig, Gradients) are shared.  Every constant below is
 transcribed again here; tests/test_torch_autograd.py checks that they equal refgs.constants.
 

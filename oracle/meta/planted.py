@@ -14,6 +14,10 @@ for the two backward defects, the stage intermediates ``render`` keeps in ``Rend
                                        (backward only)
     half_pixel_shift       (f) CNV-08  pixels sampled at (j, i) instead of (j + 0.5, i + 0.5)
 
+and, for the shrinker's meta-test, ``two_defects`` (backward only): under the frustum clamp the
+depth term of the clamped Jacobian dropped (PRJ-07, #75), and outside it the means gradient 1.5
+times too large; ``clamp_defect_only`` and ``unclamped_defect_only`` carry one each.
+
 (c) in numbers: refgs' compositing backward returns v_B = dL/dB with the off-diagonal counted once
 (RAS-08); the original stores half of it per symmetric entry and doubles it in
 ``computeCov2DCUDA``.  Replacing the -0.5 by -1 without removing the doubling hands the covariance
@@ -257,12 +261,53 @@ class HalfPixelShift(_Planted):
         return _output(comp, proj, g2d)
 
 
+# ---- two defects told apart by the frustum clamp (the shrinker's meta-test, ORC-06) --------------
+
+
+class TwoDefects(_Planted):
+    """Backward only, two defects that show in the same output (dL/dmeans) and differ only by
+    the frustum clamp (PRJ-03): ``under`` -- for a Gaussian clamped by the frustum the depth term
+    of the clamped Jacobian is dropped (#75, PRJ-07: a Profile with ``exact_clamp_depth_grad``
+    off); ``outside`` -- the means gradient of every visible unclamped Gaussian is
+    :attr:`SCALE` times too large.  A shrink that crops the image until an unclamped Gaussian
+    becomes clamped turns the second defect into the first."""
+
+    has_backward = True
+    NO_DEPTH_TERM = dataclasses.replace(INRIA, exact_clamp_depth_grad=False)
+    #: the ``outside`` defect's factor on dL/dmeans
+    SCALE = 1.5
+
+    def __init__(self, name: str, clause: str, under: bool = True, outside: bool = True):
+        super().__init__(name, clause)
+        self.under, self.outside = under, outside
+
+    def render(self, gaussians, camera, config):
+        return refgs.render(gaussians, camera, config)
+
+    def render_backward(self, out, v_image, v_alpha=None, v_depth=None):
+        src = out
+        if self.under:
+            src = refgs.render(out.gaussians, out.camera,
+                               dataclasses.replace(out.config, profile=self.NO_DEPTH_TERM))
+        grads = refgs.render_backward(src, v_image, v_alpha, v_depth)
+        if self.outside:
+            proj = out.cache["proj"]
+            unclamped = proj["visible"] & ~(proj["clamped_x"] | proj["clamped_y"])
+            means = np.array(grads.means, copy=True)
+            means[unclamped] *= self.SCALE
+            grads = dataclasses.replace(grads, means=means)
+        return grads
+
+
 no_dilation = NoDilation("planted-no-dilation", "PRJ-04")
 blend_at_cutoff = BlendAtCutoff("planted-blend-at-cutoff", "RAS-05")
 conic_offdiag_doubled = ConicOffdiagDoubled("planted-conic-offdiag-doubled", "RAS-08")
 sh_band_sign = ShBandSign("planted-sh-band-sign", "CNV-09")
 no_cap_gradient = NoCapGradient("planted-no-cap-gradient", "RAS-10")
 half_pixel_shift = HalfPixelShift("planted-half-pixel-shift", "CNV-08")
+two_defects = TwoDefects("planted-two-defects", "PRJ-07")
+clamp_defect_only = TwoDefects("planted-clamp-defect-only", "PRJ-07", under=True, outside=False)
+unclamped_defect_only = TwoDefects("planted-unclamped-defect-only", "PRJ-07", under=False, outside=True)
 
 #: name -> (backend, the clause its defect violates, True if the defect is backward-only)
 PLANTED = {

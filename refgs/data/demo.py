@@ -13,13 +13,13 @@ from __future__ import annotations
 
 import os
 import shutil
-import tempfile
 import warnings
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import ConfigError, SceneError
+from ..io.atomic import atomic_dir
 from ..types import Camera
 
 #: Bumped whenever the generated scene changes (names the cache folder).
@@ -126,10 +126,10 @@ def _sfm(image_dir: Path, out_dir: Path, names: list, seed: int):
     returns the largest reconstruction or None."""
     import pycolmap
 
-    from .triangulate import NUM_THREADS, _quiet_pycolmap
+    from .triangulate import NUM_THREADS, quiet_pycolmap
 
     db_path = out_dir.parent / "database.db"
-    with _quiet_pycolmap():
+    with quiet_pycolmap():
         pycolmap.set_random_seed(int(seed))
         reader = pycolmap.ImageReaderOptions()
         reader.camera_model = "PINHOLE"
@@ -172,9 +172,7 @@ def make_demo_scene(out_dir, seed: int = 0, n_views: int = 12, width: int = 160,
         raise ConfigError(f"demo width/height: expected integers >= 32, got {width}x{height}")
     if out_dir.exists() and any(out_dir.iterdir()):
         raise ConfigError(f"{out_dir}: demo output folder exists and is not empty")
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}-", dir=out_dir.parent))
-    try:
+    with atomic_dir(out_dir) as tmp:
         rng = np.random.default_rng(seed)
         cams = demo_cameras(int(n_views), int(width), int(height), rng)
         textures, planes = _textures(), _planes()
@@ -203,15 +201,9 @@ def make_demo_scene(out_dir, seed: int = 0, n_views: int = 12, width: int = 160,
             rec = triangulate_known_poses([Path(n).stem for n in names], pixels, cams, work,
                                           "default", seed)
         if rec.num_points3D() == 0:
-            raise SceneError(f"{tmp}: demo scene: no 3D points were reconstructed")
+            raise SceneError(f"{out_dir}: demo scene: no 3D points were reconstructed")
         rec.write_binary(str(model_dir))
         shutil.rmtree(work)
-        if out_dir.exists():
-            out_dir.rmdir()  # empty (checked above)
-        os.replace(tmp, out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return out_dir
 
 
@@ -228,19 +220,14 @@ def demo_scene_path() -> Path:
     (``demo_cache_root()/demo-v{DEMO_VERSION}``); concurrent first uses are safe: each builds
     in its own temporary folder and the first rename wins."""
     final = demo_cache_root() / f"demo-v{DEMO_VERSION}"
-    if (final / "sparse" / "0" / "points3D.bin").is_file():
+    complete = final / "sparse" / "0" / "points3D.bin"
+    if complete.is_file():
         return final
-    final.parent.mkdir(parents=True, exist_ok=True)
-    build = Path(tempfile.mkdtemp(prefix=f".demo-v{DEMO_VERSION}-build-", dir=final.parent))
     try:
-        scene = make_demo_scene(build / "scene")
-        try:
-            os.rename(scene, final)
-        except OSError:
-            if not (final / "sparse" / "0" / "points3D.bin").is_file():
-                raise
-    finally:
-        shutil.rmtree(build, ignore_errors=True)
+        make_demo_scene(final)
+    except (OSError, ConfigError):
+        if not complete.is_file():  # not a concurrent first use that published before us
+            raise
     return final
 
 

@@ -6,13 +6,12 @@ taken to be in [0, 1] already.
 """
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from ..errors import SceneError
+from ..io.atomic import atomic_path
 
 
 def read_ply(path: str | Path, dtype=np.float64) -> tuple[np.ndarray, np.ndarray]:
@@ -48,7 +47,7 @@ def read_ply(path: str | Path, dtype=np.float64) -> tuple[np.ndarray, np.ndarray
 
 def write_ply(path: str | Path, points, colors) -> Path:
     """Write ``points`` (P, 3) (float64) and ``colors`` (P, 3) in [0, 1] (uint8, rounded) as a
-    binary PLY, atomically (temp file in the same folder, then os.replace)."""
+    binary PLY, atomically (refgs.io.atomic)."""
     from plyfile import PlyData, PlyElement
 
     path = Path(path)
@@ -60,15 +59,9 @@ def write_ply(path: str | Path, points, colors) -> Path:
         rows[c] = pts[:, i]
     for i, c in enumerate(("red", "green", "blue")):
         rows[c] = rgb[:, i]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".ply.tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
             PlyData([PlyElement.describe(rows, "vertex")]).write(fh)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
     return path
 
 

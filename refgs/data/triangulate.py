@@ -48,7 +48,7 @@ QUIET_LOG_LEVEL = 2
 
 
 @contextmanager
-def _quiet_pycolmap():
+def quiet_pycolmap():
     import pycolmap
 
     old = pycolmap.logging.minloglevel
@@ -107,7 +107,7 @@ def triangulate_known_poses(names, images, cameras, work_dir, options="tuned", s
             view_of[f"{stem}.png"] = k
         files = sorted(view_of)
         db_path = tmp / "database.db"
-        with _quiet_pycolmap():
+        with quiet_pycolmap():
             pycolmap.set_random_seed(int(seed))
             reader = pycolmap.ImageReaderOptions()
             reader.camera_model = "PINHOLE"

@@ -1,4 +1,4 @@
-"""refgs.fast: numba-compiled, parallel forward and backward with the reference's API (issue 7).
+"""refgs.fast: numba-compiled, parallel forward and backward with the reference's API (docs/fast.md).
 
     refgs.fast.render(gaussians, camera, config) -> refgs.RenderOutput
     refgs.fast.render_backward(out, v_image, v_alpha=None, v_depth=None) -> refgs.Gradients

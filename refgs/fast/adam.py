@@ -1,4 +1,4 @@
-"""Adam's update of one parameter array in one compiled pass (TRN-02; the fast path of issue 7).
+"""Adam's update of one parameter array in one compiled pass (TRN-02; the backend's adam_update, TRN-08).
 
 ``refgs.train.adam.Adam.step`` is the readable spec: it builds m', v', the step and the new
 parameter as whole-array numpy expressions (six temporaries of the parameter's size, ~8 % of a

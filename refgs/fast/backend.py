@@ -1,6 +1,10 @@
-"""Oracle backends for refgs.fast (the protocol of oracle/protocol.py, ORC-01/ORC-02).
+"""refgs.fast as a backend object at a fixed profile and dtype (the backend protocol, ORC-01/ORC-02).
 
-    python -m oracle check --backend refgs.fast:fast_float32
+The registry (refgs.backends) builds :class:`FastBackend` for the names ``fast``, ``fast64``,
+``fast32`` and ``fast32g`` (training, ``refgs bench``, the conformance suite); the module-level
+objects below are the same backends by ``module:object``::
+
+    python -m oracle check --backend refgs.fast:fast_float32      (= --backend fast32)
 
 The oracle hands float64 Gaussians whose values are exactly representable in the backend's
 dtype; :class:`FastBackend` casts them (and opacity_scale) to its dtype and renders with

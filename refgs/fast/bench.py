@@ -1,4 +1,4 @@
-"""Benchmark refgs.fast against the float64 reference on the seeded benchmark scene (issue 7).
+"""Benchmark refgs.fast against the float64 reference on the seeded benchmark scene (docs/fast.md).
 
     python -m refgs.fast.bench --n 10000 50000 --size 504x378 --repeats 3 [--json out.json]
 
@@ -32,13 +32,14 @@ import numpy as np
 
 import refgs
 
+from ..io.atomic import atomic_write_text
 from ..synthetic import benchmark_scene
 from .render import render, render_backward
 from .ties import find_ties
 
 #: seed of the cotangent v_image
 COTANGENT_SEED = 1
-#: the float32 image error target outside near-ties (issue 7)
+#: the float32 image error target outside near-ties (docs/performance.md, "Targets")
 IMAGE_TOL_F32 = 1e-5
 GRAD_FIELDS = ("means", "log_scales", "quats", "opacity_logits", "sh", "means2d")
 
@@ -155,10 +156,7 @@ def main(argv=None) -> None:
     info["loadavg_after"] = os.getloadavg()
     print(f"# loadavg after {info['loadavg_after']}")
     if args.json:
-        tmp = args.json + ".tmp"
-        with open(tmp, "w") as f:
-            json.dump({"info": info, "results": results}, f, indent=1)
-        os.replace(tmp, args.json)
+        atomic_write_text(args.json, json.dumps({"info": info, "results": results}, indent=1))
 
 
 if __name__ == "__main__":

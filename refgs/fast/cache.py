@@ -3,7 +3,7 @@
 numba (``cache=True``) checks a cached kernel against the modification time and size of the one
 file that defines it, not against the functions it inlines from other files: after an edit of
 ``fexp.py`` the compositing kernels of ``kernels.py`` would keep loading the machine code built
-with the old exp (seen here: a changed polynomial had no effect until ``__pycache__`` was
+with the old exp (a changed polynomial would have no effect until ``__pycache__`` is
 cleared).  :func:`ensure_fresh_cache` closes that gap: it hashes every source file of this
 package and, when the hash differs from the one recorded beside the cache, deletes the package's
 cached kernels (``*.nbi`` index and ``*.nbc`` code files) so that they are compiled again from
@@ -14,8 +14,9 @@ left alone (numba then falls back to compiling in memory).
 from __future__ import annotations
 
 import hashlib
-import os
 from pathlib import Path
+
+from ..io.atomic import atomic_write_text
 
 #: file beside the cached kernels holding the SHA-256 of the package sources they were built from
 MARKER = "refgs-fast-sources.sha256"
@@ -52,10 +53,7 @@ def ensure_fresh_cache(package_dir: Path, cache_dir: Path | None) -> bool:
                 if f.suffix in (".nbi", ".nbc") and f.name.split(".", 1)[0] in modules:
                     f.unlink(missing_ok=True)
                     removed = True
-        cache_dir.mkdir(parents=True, exist_ok=True)
-        tmp = cache_dir / f".{MARKER}.{os.getpid()}"
-        tmp.write_text(digest + "\n")
-        os.replace(tmp, marker)
+        atomic_write_text(marker, digest + "\n")
         return removed
     except OSError:
         return False

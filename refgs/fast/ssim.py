@@ -1,98 +1,152 @@
-"""The 3DGS SSIM and its gradient (MET-02, MET-04) as compiled, threaded separable filters.
+"""The 3DGS SSIM and its gradient (MET-02, MET-04) as two compiled, threaded passes over rows.
 
 The same formulas as ``refgs.metrics.ssim.ssim_and_grad`` (the readable spec, whose docstring and
-docs/derivations/ssim_loss.md give the chain); only the separable Gaussian filtering -- eight
-filtered maps per call, 95 % of its time -- is compiled: the five moments x, y, x², y², xy are
-filtered in one fused pass over a stack of 5C image planes, the three adjoint maps in one pass
-over 3C planes (contiguous rows, so the inner loops run along memory), each pass split by rows over ``numba.get_num_threads()`` threads
-(``refgs.fast.render.parallel_for``).  Every output element is a sum over the same 11 taps in a
-fixed order, whatever the thread count, so the result is deterministic; it differs from scipy's
-``correlate1d`` only by the order of those sums (agreement ~1e-16 relative, tests/test_fast_ssim.py).
-float64 throughout, as the reference.
+docs/derivations/ssim_loss.md give the chain); what is compiled is the separable Gaussian
+filtering -- eight filtered maps per call -- fused with the pointwise chain so that every
+intermediate row stays in cache:
+
+    pass 1, per output row i of channel p: the five moments x, y, x², y², xy filtered along H
+            (the 11 input rows i-5..i+5, products formed on the fly), then along W; the SSIM map
+            row and the three adjoint inputs of the chain; those filtered along W with the
+            reversed kernel (the adjoint's first axis)  ->  smap (C, H, W), adjw (3C, H, W)
+    pass 2, per row: adjw filtered along H (reversed kernel), combined into d SSIM / d x
+
+Each pass is split by rows over ``numba.get_num_threads()`` threads
+(``refgs.fast.render.parallel_for``); every output element is a sum over the same 11 taps in a
+fixed order (a = 0..10, zero border), whatever the thread count, so the result is deterministic;
+it differs from scipy's ``correlate1d`` only by the order of those sums (agreement ~1e-16
+relative, tests/test_fast_ssim.py).  Along H the taps that fall outside the image are skipped,
+along W the row is zero-padded (a tap on the padding adds 0): the sums of the separate
+row / column kernels this replaces, operation for operation.  float64 throughout, as the reference.
 """
 from __future__ import annotations
 
 import numpy as np
 from numba import njit
 
-from ..metrics.ssim import SSIM_C1, SSIM_C2, _G, _as_image_pair
+from ..metrics.ssim import SSIM_C1, SSIM_C2, SSIM_PAD, SSIM_WINDOW, gaussian_kernel_1d
 from .render import parallel_for
 
-_R = len(_G) // 2
+#: the window (refgs.metrics.ssim.gaussian_kernel_1d) and its reverse, the adjoint's (MET-04)
+_G = gaussian_kernel_1d()
+_G_REV = np.ascontiguousarray(_G[::-1])
+#: the interior-row code below spells out the 11 taps of the 3DGS window
+assert SSIM_WINDOW == 11 and SSIM_PAD == 5
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _taps11(g, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9, s10):
+    """sum_a g[a] s_a accumulated from 0.0 in the order a = 0..10 (the separate kernels' order)."""
+    acc = 0.0
+    acc += g[0] * s0
+    acc += g[1] * s1
+    acc += g[2] * s2
+    acc += g[3] * s3
+    acc += g[4] * s4
+    acc += g[5] * s5
+    acc += g[6] * s6
+    acc += g[7] * s7
+    acc += g[8] * s8
+    acc += g[9] * s9
+    acc += g[10] * s10
+    return acc
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _sq(v):
+    return v * v
 
 
 @njit(nogil=True, cache=True)
-def _correlate_rows(lo, hi, src, dst, g):
-    """Along H: dst[p, i] = sum_a g[a] src[p, i + a - r] for planes*rows lo..hi of (P, H, W)."""
-    h = src.shape[1]
-    w = src.shape[2]
-    r = g.shape[0] // 2
-    for item in range(lo, hi):
-        p = item // h
-        i = item - p * h
-        out = dst[p, i]
+def _along_w(buf, w, g, out):
+    """out[j] = sum_a g[a] buf[j + a], a = 0..10, for j < w: a row's W-pass on its zero-padded
+    copy ``buf`` (w + 10,)."""
+    for j in range(w):
+        out[j] = _taps11(g, buf[j], buf[j + 1], buf[j + 2], buf[j + 3], buf[j + 4], buf[j + 5],
+                         buf[j + 6], buf[j + 7], buf[j + 8], buf[j + 9], buf[j + 10])
+
+
+@njit(nogil=True, cache=True)
+def _moments_h(x, y, p, i, g, hb):
+    """The H-pass of the five moments at row i of channel p into hb[k, 5 : 5 + W] (k: x, y, x²,
+    y², xy): sum over the input rows i - 5 .. i + 5 inside the image, in tap order."""
+    h = x.shape[1]
+    w = x.shape[2]
+    r = SSIM_PAD
+    if r <= i < h - r:
+        # all 11 rows inside: each moment in its own loop over j that reads one or two whole
+        # planes (so LLVM needs one alias check per plane and vectorises it), sums in registers
+        xp = x[p]
+        yp = y[p]
         for j in range(w):
-            out[j] = 0.0
-        for a in range(g.shape[0]):
-            ii = i + a - r
-            if 0 <= ii < h:
-                ga = g[a]
-                s = src[p, ii]
-                for j in range(w):
-                    out[j] += ga * s[j]
-
-
-@njit(nogil=True, cache=True)
-def _correlate_cols(lo, hi, src, dst, g):
-    """Along W: dst[p, i, j] = sum_a g[a] src[p, i, j + a - r] for planes*rows lo..hi.
-
-    Each row is copied into a zero-padded buffer, so every tap is one unit-stride loop without
-    bounds (which the compiler vectorises); the taps are summed in the order a = 0..10."""
-    h = src.shape[1]
-    w = src.shape[2]
-    r = g.shape[0] // 2
-    buf = np.zeros(w + 2 * r)
-    for item in range(lo, hi):
-        p = item // h
-        i = item - p * h
-        out = dst[p, i]
-        buf[r:r + w] = src[p, i]
-        out[:] = 0.0
-        for a in range(g.shape[0]):
+            hb[0, r + j] = _taps11(g, xp[i - 5, j], xp[i - 4, j], xp[i - 3, j], xp[i - 2, j],
+                                   xp[i - 1, j], xp[i, j], xp[i + 1, j], xp[i + 2, j],
+                                   xp[i + 3, j], xp[i + 4, j], xp[i + 5, j])
+        for j in range(w):
+            hb[1, r + j] = _taps11(g, yp[i - 5, j], yp[i - 4, j], yp[i - 3, j], yp[i - 2, j],
+                                   yp[i - 1, j], yp[i, j], yp[i + 1, j], yp[i + 2, j],
+                                   yp[i + 3, j], yp[i + 4, j], yp[i + 5, j])
+        for j in range(w):
+            hb[2, r + j] = _taps11(g, _sq(xp[i - 5, j]), _sq(xp[i - 4, j]), _sq(xp[i - 3, j]),
+                                   _sq(xp[i - 2, j]), _sq(xp[i - 1, j]), _sq(xp[i, j]),
+                                   _sq(xp[i + 1, j]), _sq(xp[i + 2, j]), _sq(xp[i + 3, j]),
+                                   _sq(xp[i + 4, j]), _sq(xp[i + 5, j]))
+        for j in range(w):
+            hb[3, r + j] = _taps11(g, _sq(yp[i - 5, j]), _sq(yp[i - 4, j]), _sq(yp[i - 3, j]),
+                                   _sq(yp[i - 2, j]), _sq(yp[i - 1, j]), _sq(yp[i, j]),
+                                   _sq(yp[i + 1, j]), _sq(yp[i + 2, j]), _sq(yp[i + 3, j]),
+                                   _sq(yp[i + 4, j]), _sq(yp[i + 5, j]))
+        for j in range(w):
+            hb[4, r + j] = _taps11(g, xp[i - 5, j] * yp[i - 5, j], xp[i - 4, j] * yp[i - 4, j],
+                                   xp[i - 3, j] * yp[i - 3, j], xp[i - 2, j] * yp[i - 2, j],
+                                   xp[i - 1, j] * yp[i - 1, j], xp[i, j] * yp[i, j],
+                                   xp[i + 1, j] * yp[i + 1, j], xp[i + 2, j] * yp[i + 2, j],
+                                   xp[i + 3, j] * yp[i + 3, j], xp[i + 4, j] * yp[i + 4, j],
+                                   xp[i + 5, j] * yp[i + 5, j])
+        return
+    for k in range(5):                       # border rows: the taps inside, in order
+        for j in range(w):
+            hb[k, r + j] = 0.0
+    for a in range(g.shape[0]):
+        ii = i + a - r
+        if 0 <= ii < h:
             ga = g[a]
+            xs = x[p, ii]
+            ys = y[p, ii]
             for j in range(w):
-                out[j] += ga * buf[j + a]
-
-
-def _filter(planes: np.ndarray, g: np.ndarray, first_axis: int) -> np.ndarray:
-    """Separable zero-border correlation of (P, H, W) planes with g along H and W,
-    H first (``first_axis`` 0, the forward filter) or W first (1, the adjoint)."""
-    planes = np.ascontiguousarray(planes)     # C order: the kernels are compiled for it
-    p, h, _ = planes.shape
-    tmp = np.empty(planes.shape)
-    out = np.empty(planes.shape)
-    first, second = ((_correlate_rows, _correlate_cols) if first_axis == 0
-                     else (_correlate_cols, _correlate_rows))
-    parallel_for(first, p * h, planes, tmp, g)
-    parallel_for(second, p * h, tmp, out, g)
-    return out
+                xv = xs[j]
+                yv = ys[j]
+                hb[0, r + j] += ga * xv
+                hb[1, r + j] += ga * yv
+                hb[2, r + j] += ga * (xv * xv)
+                hb[3, r + j] += ga * (yv * yv)
+                hb[4, r + j] += ga * (xv * yv)
 
 
 @njit(nogil=True, cache=True)
-def _pointwise(lo, hi, mom, c, inv_n, c1, c2, smap, adj_in):
-    """Per pixel of planes*rows lo..hi: the SSIM map S and the three maps the adjoint filter takes
-    (``refgs.metrics.ssim.ssim_and_grad``'s chain, same expressions in the same order)."""
-    h = mom.shape[1]
-    w = mom.shape[2]
+def _pass_moments(lo, hi, x, y, g, g_rev, inv_n, c1, c2, smap, adjw):
+    """Pass 1 for channel-rows lo..hi of (C, H, W) x, y: smap (C, H, W) the SSIM map; adjw
+    (3C, H, W) the chain's three adjoint inputs (grad of mu_x, of m_xx, of m_xy; the reference's
+    expressions in its order) after the adjoint's W-pass."""
+    c = x.shape[0]
+    h = x.shape[1]
+    w = x.shape[2]
+    r = SSIM_PAD
+    hb = np.zeros((5, w + 2 * r))            # H-pass rows, zero-padded for the W-pass
+    mom = np.empty((5, w))
+    ab = np.zeros((3, w + 2 * r))            # adjoint inputs, zero-padded for their W-pass
     for item in range(lo, hi):
         p = item // h
         i = item - p * h
+        _moments_h(x, y, p, i, g, hb)
+        for k in range(5):
+            _along_w(hb[k], w, g, mom[k])
         for j in range(w):
-            mu_x = mom[p, i, j]
-            mu_y = mom[c + p, i, j]
-            s_xx = mom[2 * c + p, i, j] - mu_x * mu_x
-            s_yy = mom[3 * c + p, i, j] - mu_y * mu_y
-            s_xy = mom[4 * c + p, i, j] - mu_x * mu_y
+            mu_x = mom[0, j]
+            mu_y = mom[1, j]
+            s_xx = mom[2, j] - mu_x * mu_x
+            s_yy = mom[3, j] - mu_y * mu_y
+            s_xy = mom[4, j] - mu_x * mu_y
             a1 = 2.0 * mu_x * mu_y + c1
             a2 = 2.0 * s_xy + c2
             b1 = mu_x * mu_x + mu_y * mu_y + c1
@@ -103,22 +157,65 @@ def _pointwise(lo, hi, mom, c, inv_n, c1, c2, smap, adj_in):
             d_b1 = -sv / b1
             d_b2 = -sv / b2
             smap[p, i, j] = sv
-            adj_in[p, i, j] = inv_n * 2.0 * (mu_y * (d_a1 - d_a2) + mu_x * (d_b1 - d_b2))
-            adj_in[c + p, i, j] = inv_n * d_b2
-            adj_in[2 * c + p, i, j] = inv_n * 2.0 * d_a2
+            ab[0, r + j] = inv_n * 2.0 * (mu_y * (d_a1 - d_a2) + mu_x * (d_b1 - d_b2))
+            ab[1, r + j] = inv_n * d_b2
+            ab[2, r + j] = inv_n * 2.0 * d_a2
+        for k in range(3):
+            _along_w(ab[k], w, g_rev, adjw[k * c + p, i])
 
 
 @njit(nogil=True, cache=True)
-def _combine(lo, hi, adj, x, y, c, grad):
-    """grad[i, j, p] = f^T(g_mu_x) + 2 x f^T(g_m_xx) + y f^T(g_m_xy) (channel-last output)."""
-    h = adj.shape[1]
-    w = adj.shape[2]
+def _pass_adjoint(lo, hi, adjw, x, y, g_rev, grad):
+    """Pass 2 for channel-rows lo..hi: the adjoint's H-pass of adjw and the combination
+    grad[i, j, p] = f^T(g_mu_x) + 2 x f^T(g_m_xx) + y f^T(g_m_xy) (channel-last output)."""
+    c = x.shape[0]
+    h = x.shape[1]
+    w = x.shape[2]
+    r = SSIM_PAD
+    t = np.empty((3, w))
     for item in range(lo, hi):
         p = item // h
         i = item - p * h
+        for k in range(3):
+            q = k * c + p
+            if r <= i < h - r:
+                sp = adjw[q]
+                for j in range(w):
+                    t[k, j] = _taps11(g_rev, sp[i - 5, j], sp[i - 4, j], sp[i - 3, j],
+                                      sp[i - 2, j], sp[i - 1, j], sp[i, j], sp[i + 1, j],
+                                      sp[i + 2, j], sp[i + 3, j], sp[i + 4, j], sp[i + 5, j])
+            else:
+                for j in range(w):
+                    t[k, j] = 0.0
+                for a in range(g_rev.shape[0]):
+                    ii = i + a - r
+                    if 0 <= ii < h:
+                        ga = g_rev[a]
+                        s = adjw[q, ii]
+                        for j in range(w):
+                            t[k, j] += ga * s[j]
         for j in range(w):
-            grad[i, j, p] = (adj[p, i, j] + 2.0 * x[p, i, j] * adj[c + p, i, j]
-                             + y[p, i, j] * adj[2 * c + p, i, j])
+            grad[i, j, p] = t[0, j] + 2.0 * x[p, i, j] * t[1, j] + y[p, i, j] * t[2, j]
+
+
+def _image_pair(img, gt) -> tuple[np.ndarray, np.ndarray, tuple]:
+    """float64 channel planes (C, H, W) of img and gt and img's shape; ValueError naming
+    ssim_and_grad for mismatched shapes, other ranks or non-finite values (the reference's
+    checks and messages)."""
+    a, b = np.asarray(img), np.asarray(gt)
+    if a.shape != b.shape:
+        raise ValueError(f"ssim_and_grad: img and gt must have the same shape, got {a.shape} "
+                         f"and {b.shape}")
+    if a.ndim not in (2, 3) or a.size == 0:
+        raise ValueError(f"ssim_and_grad: expected images of shape (H, W) or (H, W, C), got {a.shape}")
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+        raise ValueError("ssim_and_grad: img and gt must contain only finite values")
+    shape = a.shape
+    if a.ndim == 2:
+        a, b = a[..., None], b[..., None]
+    return (np.ascontiguousarray(np.moveaxis(a, 2, 0)), np.ascontiguousarray(np.moveaxis(b, 2, 0)),
+            shape)
 
 
 def ssim_and_grad(img: np.ndarray, gt: np.ndarray) -> tuple[float, np.ndarray]:
@@ -126,18 +223,14 @@ def ssim_and_grad(img: np.ndarray, gt: np.ndarray) -> tuple[float, np.ndarray]:
 
     Shapes (H, W, C) or (H, W); value a Python float, grad with img's shape and floating dtype.
     """
-    x, y, shape = _as_image_pair(img, gt, "ssim_and_grad")
-    x = np.ascontiguousarray(np.moveaxis(x, 2, 0))               # channel planes (C, H, W)
-    y = np.ascontiguousarray(np.moveaxis(y, 2, 0))
+    x, y, shape = _image_pair(img, gt)
     c, h, w = x.shape
-    mom = _filter(np.concatenate([x, y, x * x, y * y, x * y], axis=0), _G, 0)
     smap = np.empty((c, h, w))
-    adj_in = np.empty((3 * c, h, w))
-    parallel_for(_pointwise, c * h, mom, c, 1.0 / (c * h * w), SSIM_C1, SSIM_C2, smap, adj_in)
-    # adjoint filter: reversed kernel, the two axes in the reverse order (gaussian_filter_adjoint)
-    adj = _filter(adj_in, np.ascontiguousarray(_G[::-1]), 1)
+    adjw = np.empty((3 * c, h, w))
+    parallel_for(_pass_moments, c * h, x, y, _G, _G_REV, 1.0 / (c * h * w), SSIM_C1, SSIM_C2,
+                 smap, adjw)
     grad = np.empty((h, w, c))
-    parallel_for(_combine, c * h, adj, x, y, c, grad)
+    parallel_for(_pass_adjoint, c * h, adjw, x, y, _G_REV, grad)
     dt = np.asarray(img).dtype
     out_dtype = dt if np.issubdtype(dt, np.floating) else np.float64
     return float(np.mean(smap)), grad.reshape(shape).astype(out_dtype, copy=False)

@@ -5,6 +5,8 @@ complete new one, never a half-written file (house rule; clause TRN-09 of docs/s
 The temporary file lives in the same folder so that ``os.replace`` is a rename on one file system.
 
     atomic_path(path)            context manager yielding a temporary path to write to
+    atomic_dir(path)             the same for a whole folder (built beside ``path``, then renamed)
+    partial_dir / publish_dir    a folder built over time beside ``path``, renamed when ready
     atomic_write_bytes / _text / _json(path, ...)
     atomic_save_npz(path, arrays)    numpy ``savez`` (readable with ``allow_pickle=False``)
     atomic_save_png(path, image)     (H, W, 3) floats in [0, 1] -> 8-bit PNG
@@ -13,6 +15,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
@@ -49,6 +52,48 @@ def atomic_path(path: str | os.PathLike):
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+@contextmanager
+def atomic_dir(path: str | os.PathLike):
+    """Yield a new empty temporary folder next to ``path``; on normal exit it is renamed to
+    ``path``, on an exception it is removed with its contents and ``path`` is left untouched.
+
+    ``path`` may be absent or an empty folder (replaced); if it is a non-empty folder when the
+    rename comes (e.g. another process published it first) the rename raises ``OSError`` and the
+    temporary folder is removed.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=TMP_SUFFIX, dir=path.parent))
+    os.chmod(tmp, default_mode(directory=True))
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def partial_dir(path: str | os.PathLike, tag: str = ".partial-") -> Path:
+    """A new empty hidden folder ``.<name><tag>XXXX`` next to ``path`` (the same file system),
+    for a folder that is built over time and published later with :func:`publish_dir` (a run
+    directory, published at its first checkpoint); the caller removes it if it is never
+    published."""
+    path = Path(path)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}{tag}", dir=path.parent))
+    os.chmod(tmp, default_mode(directory=True))
+    return tmp
+
+
+def publish_dir(tmp: str | os.PathLike, path: str | os.PathLike) -> Path:
+    """Rename the folder ``tmp`` to ``path`` in one step; FileExistsError if ``path`` exists
+    (a folder is never replaced)."""
+    path = Path(path)
+    if path.exists():
+        raise FileExistsError(f"{path}: already exists")
+    os.rename(tmp, path)
+    return path
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
@@ -94,5 +139,5 @@ def atomic_save_png(path: str | os.PathLike, image) -> Path:
     return Path(path)
 
 
-__all__ = ["atomic_path", "default_mode", "atomic_write_bytes", "atomic_write_text",
+__all__ = ["atomic_path", "atomic_dir", "default_mode", "atomic_write_bytes", "atomic_write_text",
            "atomic_write_json", "atomic_save_npz", "atomic_save_png", "to_uint8"]

@@ -76,7 +76,7 @@ def clamp_displacement(local: np.ndarray, scales: np.ndarray, mode: str = DEFAUL
 
 @dataclass(frozen=True)
 class NoiseShape:
-    """Which axes scale the noise (ablation 'noise distribution', issue 8) [FM-01].
+    """Which axes scale the noise (the paper's ablation 'noise distribution') [FM-01].
 
     "anisotropic" (default): gamma R S z.  "iso_max" / "iso_mean": gamma s* R z with s* the
     largest / mean axis.  "iso_fixed": gamma * fixed_sigma * z for every Gaussian.

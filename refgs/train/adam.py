@@ -15,7 +15,9 @@ neither moves nor counts the step.
 Rows are Gaussians: densification changes N and the moments follow their rows
 (``remap``: rows copied from an old row keep its moments, new rows start at zero, as 3DGS
 ``cat_tensors_to_optimizer`` / ``_prune_optimizer``); ``zero`` clears the moments of a parameter
-(3DGS ``replace_tensor_to_optimizer`` at the opacity reset).  The learning rate may be an array
+(3DGS ``replace_tensor_to_optimizer`` at the opacity reset) and ``reset_rows`` those of some rows
+(the flat-minima reinitialisation, docs/spec/method.md FM-07/FM-08): a training method changes
+the optimiser's state only through these.  The learning rate may be an array
 broadcasting against the parameter: refgs stores all SH coefficients in one (N, K, 3) array and
 gives the DC slice and the rest their own rates with an lr of shape (1, K, 1).
 """
@@ -104,6 +106,28 @@ class Adam:
         """Clear the moments of ``name`` (step count kept, as replace_tensor_to_optimizer)."""
         self.m[name][...] = 0
         self.v[name][...] = 0
+
+    def reset_rows(self, name: str, rows) -> None:
+        """Clear the moments of some rows of ``name``; its step count is kept (one count per
+        tensor, as in torch), so the next step of those rows is bias-corrected for it (FM-08).
+
+        rows  (N,) bool or integer row indices; or a bool array broadcasting against the
+              parameter (e.g. (N, K, 1) for some SH coefficients of some rows), the convention
+              of ``step``'s ``frozen_rows``
+        """
+        rows = np.asarray(rows)
+        shape = self.m[name].shape
+        if rows.dtype == bool and rows.shape != shape[:1]:
+            try:
+                rows = np.broadcast_to(rows, shape)
+            except ValueError:
+                raise ValueError(f"Adam.reset_rows: mask of shape {rows.shape} does not broadcast "
+                                 f"against {name} {shape}") from None
+        elif rows.dtype != bool and not np.issubdtype(rows.dtype, np.integer):
+            raise ValueError(f"Adam.reset_rows: rows of {name} must be bool or integer indices, "
+                             f"got {rows.dtype}")
+        for store in (self.m, self.v):
+            store[name][rows] = 0
 
     # --- checkpoint (plain arrays, no pickles) ------------------------------------------------
     def state_arrays(self) -> dict:

@@ -1,4 +1,4 @@
-"""Checkpoints and run directories (clause TRN-09, docs/spec/training.md).
+"""Checkpoints and the provenance a run records (clause TRN-09, docs/spec/training.md).
 
 A checkpoint is one ``.npz`` of plain arrays, readable with ``np.load(..., allow_pickle=False)``:
 parameters ``param/<name>``, Adam moments and step counts ``adam/...``, densification statistics
@@ -7,34 +7,25 @@ holding JSON (iteration, the bit-generator states of the run's random streams, t
 stack, timings).  numpy's PCG64 state is a dict of integers, so it round-trips through JSON
 exactly; no pickle is ever written or read.
 
-A run directory is built under a hidden temporary name next to its final path and renamed to the
-final path at the first checkpoint or at the end (``RunDir.publish``); a run that fails before
-that removes it, so bad input never leaves a partial run directory behind.
+The run directory that holds a checkpoint (its files, how it is created, published and read
+back) is refgs.runs.
 """
 from __future__ import annotations
 
 import json
 import os
 import platform
-import shutil
 import subprocess
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from ..errors import ConfigError, RefgsError
-from ..io.atomic import atomic_save_npz, atomic_write_json, default_mode
+from ..errors import RefgsError
+from ..io.atomic import atomic_save_npz
 
 #: Format version stored in every checkpoint's meta; loading another version is refused.
 CHECKPOINT_VERSION = 1
-#: File names inside a run directory.
-CHECKPOINT_FILE = "checkpoint.npz"
-CONFIG_FILE = "config.json"
-#: Prefix of the hidden directory a run is built in before it is published.
-PARTIAL_PREFIX = "."
-PARTIAL_SUFFIX = ".partial-"
 
 
 class CheckpointError(RefgsError):
@@ -91,69 +82,6 @@ def load_checkpoint(path: str | Path) -> tuple[dict, dict]:
     return arrays, meta
 
 
-def read_config(run_dir: str | Path) -> dict:
-    """The config.json of a run directory; CheckpointError naming the file when absent/corrupt."""
-    path = Path(run_dir) / CONFIG_FILE
-    if not Path(run_dir).is_dir():
-        raise CheckpointError(f"{run_dir}: run directory not found")
-    if not path.is_file():
-        raise CheckpointError(f"{path}: not found (is {run_dir} a refgs run directory?)")
-    try:
-        return json.loads(path.read_text())
-    except (ValueError, UnicodeDecodeError) as exc:
-        raise CheckpointError(f"{path}: not valid JSON ({exc})") from None
-
-
-# --- run directory --------------------------------------------------------------------------
-class RunDir:
-    """Where a run writes: ``path`` (hidden temporary name until published, then the final one).
-
-    create(final)  a new hidden directory next to ``final``; ConfigError (--out) if ``final``
-                   exists already.
-    publish()      rename to the final path (idempotent).
-    discard()      remove the directory if it was never published.
-    """
-
-    def __init__(self, final: Path, path: Path, published: bool):
-        self.final = Path(final)
-        self.path = Path(path)
-        self.published = published
-
-    @staticmethod
-    def create(final: str | Path) -> "RunDir":
-        final = Path(final).absolute()
-        if final.exists():
-            raise ConfigError(f"--out: {final} already exists (choose a new folder, or continue "
-                              f"it with: refgs train --resume {final})")
-        if not final.parent.is_dir():
-            raise ConfigError(f"--out: parent folder {final.parent} does not exist")
-        tmp = tempfile.mkdtemp(prefix=PARTIAL_PREFIX + final.name + PARTIAL_SUFFIX, dir=final.parent)
-        os.chmod(tmp, default_mode(directory=True))
-        return RunDir(final, Path(tmp), False)
-
-    @staticmethod
-    def existing(path: str | Path) -> "RunDir":
-        path = Path(path).absolute()
-        return RunDir(path, path, True)
-
-    def publish(self) -> None:
-        if self.published:
-            return
-        if self.final.exists():
-            raise ConfigError(f"--out: {self.final} appeared while the run was being built; "
-                              f"the run is kept in {self.path}")
-        os.rename(self.path, self.final)
-        self.path = self.final
-        self.published = True
-
-    def discard(self) -> None:
-        if not self.published:
-            shutil.rmtree(self.path, ignore_errors=True)
-
-    def __truediv__(self, name: str) -> Path:
-        return self.path / name
-
-
 # --- provenance -----------------------------------------------------------------------------
 def _git(args: list[str], cwd: Path) -> str | None:
     try:
@@ -163,7 +91,8 @@ def _git(args: list[str], cwd: Path) -> str | None:
     return res.stdout.strip() if res.returncode == 0 else None
 
 
-def _cpu_name() -> str:
+def cpu_name() -> str:
+    """The CPU's model name (/proc/cpuinfo), else what ``platform`` knows."""
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
             if line.startswith("model name"):
@@ -217,7 +146,7 @@ def provenance() -> dict:
         "packages": versions,
         "python": sys.version.split()[0],
         "platform": platform.platform(),
-        "cpu": _cpu_name(),
+        "cpu": cpu_name(),
         "cpu_count": os.cpu_count(),
         "threads_available": affinity,
         "thread_env": {k: os.environ.get(k) for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS",
@@ -225,10 +154,5 @@ def provenance() -> dict:
     }
 
 
-def write_config(run: RunDir, config: dict) -> Path:
-    return atomic_write_json(run / CONFIG_FILE, config)
-
-
-__all__ = ["save_checkpoint", "load_checkpoint", "read_config", "write_config", "RunDir",
-           "provenance", "source_hash", "rng_state", "rng_from_state", "CheckpointError",
-           "CHECKPOINT_FILE", "CONFIG_FILE", "CHECKPOINT_VERSION"]
+__all__ = ["save_checkpoint", "load_checkpoint", "provenance", "source_hash", "peak_rss_gb",
+           "cpu_name", "rng_state", "rng_from_state", "CheckpointError", "CHECKPOINT_VERSION"]

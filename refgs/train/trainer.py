@@ -1,20 +1,24 @@
-"""The training loop of 3DGS as the sparse-view papers run it (clauses TRN-01..TRN-08).
+"""The training loop of 3DGS as the sparse-view papers run it (clauses TRN-01..TRN-09).
 
-One iteration t (1-based, as 3DGS ``train.py``@82bc469; peers.md 1.6, 1.7, 3.1):
+The data flow of one iteration t (1-based, as 3DGS ``train.py``@82bc469; peers.md 1.6, 1.7, 3.1),
+``Trainer.step``::
 
-    1. learning rates for t (position lr decays to t = T), active SH degree for t
-    2. pop a training view from a shuffled stack (refilled when empty); draw the background
-    3. method.render_request -> Gaussians (+ per-Gaussian opacity_scale) to render
-    4. backend.render; clamp the image to [0, 1] (DropGaussian); loss L1 + 0.2 (1 - SSIM);
-       backend.render_backward with the clamp's gradient mask
-    5. method.param_gradients -> gradients of the stored (unperturbed) parameters
-    6. densification statistics, densify-and-prune, opacity reset (while t < until)
-    7. Adam step (not at t = T, not for tensors replaced in step 6: as 3DGS), method.after_step
+    scene view, background        pop a view from the shuffled stack; draw the background  TRN-07
+    Gaussians to render           method.before_render  (theta, or theta_hat / opacity_scale)  TRN-08
+    render (backend)              backend.render; clamp the image to [0, 1]             TRN-01
+    loss                          L1 + 0.2 (1 - SSIM) against the view's image          TRN-01, MET-08
+    gradients                     backend.render_backward; method.after_backward        TRN-01, TRN-08
+    densification                 statistics, densify-and-prune (method.on_densify),
+                                  opacity reset, while t < until                        TRN-04..TRN-06
+    optimizer step                Adam at the learning rates of t, leaving
+                                  method.frozen_rows alone; not at t = T, not for the
+                                  tensors replaced by densification (as 3DGS)           TRN-02, TRN-03
+    method.after_step             e.g. the flat-minima reinitialisation (FM-06, FM-07)
 
-The trainer reaches the renderer only through ``backend`` (refgs.train.backend) and the method
-only through the ``Method`` hooks below, so a faster backend, the flat-minima method (perturbed
-positions at render time, gradients applied to the unperturbed parameters, periodic reinit with
-frozen windows) or DropGaussian (opacity_scale) plug in without changing this loop.
+The trainer reaches the renderer only through ``backend`` (an object with ``render`` /
+``render_backward``, chosen by the caller) and the training method only through the hooks of
+``refgs.train.hooks.Method`` (the caller passes the method object), so a faster backend, the
+flat-minima method or DropGaussian plug in without changing this loop.
 """
 from __future__ import annotations
 
@@ -28,6 +32,7 @@ from ..metrics.psnr import psnr
 from ..types import Gaussians, RenderConfig
 from .adam import Adam
 from .densify import DensifyConfig, DensifyStats, densify_and_prune, densify_preset, reset_opacity
+from .hooks import Method
 from .loss import FORM_L1_PLUS, LAMBDA_DSSIM, LOSS_FORMS, photometric_loss
 from .schedule import SH_MAX_DEGREE, learning_rates, sh_degree_at
 
@@ -41,6 +46,8 @@ LOSS_EMA_WEIGHT = 0.4
 RNG_STREAMS = ("views", "densify", "method")
 DTYPES = {"float64": np.float64, "float32": np.float32}
 PARAM_NAMES = Gaussians.FIELDS
+#: The method a trainer built without a method object runs (plain 3DGS, DG-02).
+PLAIN_METHOD = Method.name
 
 
 class TrainingDiverged(RefgsError):
@@ -77,7 +84,10 @@ class TrainConfig:
     triangulation: str = "tuned"
     lpips: bool = True
 
-    def validate(self) -> "TrainConfig":
+    def validate(self, method_names=None) -> "TrainConfig":
+        """Check every setting; ConfigError naming the flag.  ``method_names``: the known
+        ``--method`` names (refgs.methods.METHOD_NAMES, given by the caller: training does not
+        import the methods); None skips that check."""
         def positive(name, v, zero_ok=False):
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < (0 if zero_ok else 1):
                 raise ConfigError(f"--{name.replace('_', '-')}: expected a "
@@ -89,6 +99,8 @@ class TrainConfig:
             positive("eval_every", self.eval_every, zero_ok=True)
         if not isinstance(self.seed, (int, np.integer)) or self.seed < 0:
             raise ConfigError(f"--seed: expected a non-negative integer, got {self.seed!r}")
+        if method_names is not None and self.method not in method_names:
+            raise ConfigError(f"--method: expected one of {sorted(method_names)}, got {self.method!r}")
         if self.dtype not in DTYPES:
             raise ConfigError(f"--dtype: expected one of {sorted(DTYPES)}, got {self.dtype!r}")
         if self.background not in BACKGROUNDS:
@@ -131,74 +143,6 @@ class TrainConfig:
 
 
 @dataclass
-class RenderRequest:
-    """What a method asks the backend to render: Gaussians and an optional (N,) opacity scale."""
-
-    gaussians: Gaussians
-    opacity_scale: np.ndarray | None = None
-    extra: dict = field(default_factory=dict)
-
-
-class Method:
-    """Plain 3DGS; the base of every training method (TRN-08).
-
-    Hooks (all optional to override; ``trainer`` exposes params, adam, stats, t, cfg, extent):
-      render_request(trainer, t, rng)   what to render this iteration (e.g. perturbed positions,
-                                        DropGaussian's opacity_scale)
-      param_gradients(trainer, t, request, grads) -> dict name -> gradient of the stored
-                                        parameters (e.g. apply perturbed-position gradients to the
-                                        unperturbed means)
-      frozen_rows(trainer, t)           None or name -> (N,) bool rows Adam must leave unchanged
-      after_densify(trainer, remap)     keep per-Gaussian method state on its rows (remap.parent)
-      after_step(trainer, t, rng)       e.g. periodic re-initialisation
-      state_arrays / load_state_arrays  method state for checkpoints (plain arrays)
-    """
-
-    name = "3dgs"
-
-    def setup(self, trainer) -> None:
-        pass
-
-    def render_request(self, trainer, t: int, rng: np.random.Generator) -> RenderRequest:
-        return RenderRequest(trainer.gaussians())
-
-    def param_gradients(self, trainer, t: int, request: RenderRequest, grads) -> dict:
-        return grads.params()
-
-    def frozen_rows(self, trainer, t: int):
-        return None
-
-    def after_densify(self, trainer, remap) -> None:
-        pass
-
-    def after_step(self, trainer, t: int, rng: np.random.Generator) -> None:
-        pass
-
-    def state_arrays(self) -> dict:
-        return {}
-
-    def load_state_arrays(self, arrays: dict) -> None:
-        pass
-
-
-#: --method name -> factory of a Method; "3dgs" here, "fm" and "dropgaussian" registered by
-#: refgs.methods.training (register_method adds others).
-METHODS = {"3dgs": Method}
-
-
-def register_method(name: str, factory) -> None:
-    """Make ``factory()`` (a Method) available as ``--method name``."""
-    METHODS[str(name)] = factory
-
-
-def get_method(name: str, params: dict | None = None) -> Method:
-    """``METHODS[name](**params)``; ConfigError naming --method when unknown."""
-    if name not in METHODS:
-        raise ConfigError(f"--method: expected one of {sorted(METHODS)}, got {name!r}")
-    return METHODS[name](**(params or {}))
-
-
-@dataclass
 class View:
     """A training or test view: name, refgs.Camera, image (H, W, 3) in [0, 1]."""
 
@@ -208,18 +152,34 @@ class View:
 
 
 class Trainer:
-    """State and loop of one run (TRN-01..TRN-08).  ``params``: name -> array (refgs.Gaussians
-    fields); everything needed to continue bit-exactly is in ``state_arrays`` / ``state_meta``."""
+    """State and loop of one run (TRN-01..TRN-09).
+
+    cfg          TrainConfig
+    train_views, test_views   lists of View
+    params       name -> array (refgs.Gaussians fields), copied in ``cfg.dtype``
+    extent       scene extent e (refgs.train.schedule.scene_extent)
+    backend      the renderer (refgs.train.backend); optional ``adam_update`` / ``ssim_and_grad``
+    method       the training method's hooks (refgs.train.hooks.Method; the caller builds it,
+                 e.g. ``refgs.methods.make_method(cfg.method, cfg.method_params)``); None only
+                 for plain 3DGS (``cfg.method == "3dgs"``)
+
+    Everything needed to continue bit-exactly is in ``state_arrays`` / ``state_meta``.
+    """
 
     def __init__(self, cfg: TrainConfig, train_views: list, test_views: list, params: dict,
                  extent: float, backend, method: Method | None = None):
+        if method is None:
+            if cfg.method != PLAIN_METHOD:
+                raise ConfigError(f"--method {cfg.method}: the trainer needs its method object "
+                                  "(refgs.methods.make_method(cfg.method, cfg.method_params))")
+            method = Method()
         self.cfg = cfg
         self.train_views = list(train_views)
         self.test_views = list(test_views)
         self.params = {k: np.array(params[k], dtype=DTYPES[cfg.dtype]) for k in PARAM_NAMES}
         self.extent = float(extent)
         self.backend = backend
-        self.method = method if method is not None else get_method(cfg.method, cfg.method_params)
+        self.method = method
         self.adam = Adam(self.params, kernel=getattr(self.backend, "adam_update", None))
         self.stats = DensifyStats(len(self.params["means"]))
         self.t = 0
@@ -232,9 +192,9 @@ class Trainer:
         self.train_seconds = 0.0
         self.loss_ema = 0.0
         #: the initial point cloud {"points": (M,3), "colors": (M,3)} the run started from, kept in
-        #: every checkpoint (TRN-09); set by the caller that made it (refgs.cli.train)
+        #: every checkpoint (TRN-09); set by the caller that made it
         self.init_cloud: dict | None = None
-        #: the view and render settings of the iteration in progress (for Method hooks)
+        #: the view and render settings of the iteration in progress (for the method's hooks)
         self.current_view: View | None = None
         self.current_render_config: RenderConfig | None = None
         self.method.setup(self)
@@ -252,43 +212,27 @@ class Trainer:
 
     # --- one iteration --------------------------------------------------------------------
     def step(self) -> dict:
-        """Run iteration t = self.t + 1 (module docstring); returns loss, psnr, view."""
-        cfg, dcfg = self.cfg, self.cfg.densify
+        """Run iteration t = self.t + 1 (the data flow of the module docstring); returns the
+        iteration's loss, training-view PSNR and view name."""
+        cfg, method = self.cfg, self.method
         t0, c0 = time.perf_counter(), time.process_time()
-        t, horizon = self.t + 1, cfg.iters
-        k = self.params["sh"].shape[1]
-        lrs = learning_rates(t, horizon, self.extent, k)
-        degree = sh_degree_at(t, cfg.sh_degree)
-        rng = self.rngs["views"]
-        if not self.view_stack:
-            self.view_stack = list(range(len(self.train_views)))
-        view = self.train_views[self.view_stack.pop(int(rng.integers(len(self.view_stack))))]
-        bg = BACKGROUNDS[cfg.background]
-        bg = tuple(float(x) for x in rng.random(3)) if bg is None else bg
-
-        request = self.method.render_request(self, t, self.rngs["method"])
-        rcfg = RenderConfig(profile=cfg.profile, sh_degree=degree, background=bg,
-                            opacity_scale=request.opacity_scale)
+        t = self.t + 1
+        # scene view -> Gaussians to render (the method's hook: theta, theta_hat, opacity scale)
+        view, background = self.next_view()
+        request = method.before_render(self, t, self.rngs["method"])
+        rcfg = RenderConfig(profile=cfg.profile, sh_degree=sh_degree_at(t, cfg.sh_degree),
+                            background=background, opacity_scale=request.opacity_scale)
         self.current_view, self.current_render_config = view, rcfg
+        # render (backend) -> loss -> gradients of the render, then of the stored parameters
         loss, grads, out, shown = self.loss_and_grads(request.gaussians, view, rcfg, t)
-        pgrads = self.method.param_gradients(self, t, request, grads)
-
-        skip: set = set()
-        if t < dcfg.resolved_until(horizon):
-            self.stats.accumulate(grads.means2d, out.radii, view.camera.width, view.camera.height)
-            if t > dcfg.start and t % dcfg.interval == 0:
-                size_active = dcfg.size_prune and t > dcfg.opacity_reset_interval
-                remap = densify_and_prune(self.params, self.stats, self.adam, dcfg, self.extent,
-                                          size_active, self.rngs["densify"])
-                self.method.after_densify(self, remap)
-                skip = set(PARAM_NAMES)  # replaced tensors carry no gradient in 3DGS
-            if t % dcfg.opacity_reset_interval == 0 or (cfg.background == "white" and t == dcfg.start):
-                reset_opacity(self.params, self.adam)
-                skip.add("opacity_logits")
-        if t < horizon and len(skip) < len(PARAM_NAMES):
-            self.adam.step(self.params, pgrads, lrs, skip=skip,
-                           frozen_rows=self.method.frozen_rows(self, t))
-        self.method.after_step(self, t, self.rngs["method"])
+        param_grads = method.after_backward(self, t, request, grads)
+        # densification -> optimizer step (not at t = T) -> the method's end of iteration
+        replaced = self.densification(t, grads, out, view)
+        if t < cfg.iters and len(replaced) < len(PARAM_NAMES):
+            lrs = learning_rates(t, cfg.iters, self.extent, self.params["sh"].shape[1])
+            self.adam.step(self.params, param_grads, lrs, skip=replaced,
+                           frozen_rows=method.frozen_rows(self, t))
+        method.after_step(self, t, self.rngs["method"])
 
         self.t = t
         value = psnr(shown, view.image)
@@ -300,6 +244,40 @@ class Trainer:
             self.history[key].append(v)
         self.train_seconds += seconds
         return {"t": t, "loss": loss, "psnr": value, "view": view.name}
+
+    def next_view(self) -> tuple:
+        """The training view of this iteration, popped at a random index of the shuffled stack
+        (refilled when empty), and the background colour (TRN-07); both from the ``views``
+        random stream, in that order."""
+        rng = self.rngs["views"]
+        if not self.view_stack:
+            self.view_stack = list(range(len(self.train_views)))
+        view = self.train_views[self.view_stack.pop(int(rng.integers(len(self.view_stack))))]
+        background = BACKGROUNDS[self.cfg.background]
+        if background is None:
+            background = tuple(float(x) for x in rng.random(3))
+        return view, background
+
+    def densification(self, t: int, grads, out, view: View) -> set:
+        """Adaptive density control of iteration t (TRN-04..TRN-06): accumulate the screen-space
+        statistics of the render, densify-and-prune at its interval (then ``method.on_densify``),
+        reset opacity at its interval.  Returns the names of the parameter tensors replaced, which
+        take no Adam step this iteration (as 3DGS: a replaced tensor has no gradient)."""
+        cfg, dcfg = self.cfg, self.cfg.densify
+        replaced: set = set()
+        if t >= dcfg.resolved_until(cfg.iters):
+            return replaced
+        self.stats.accumulate(grads.means2d, out.radii, view.camera.width, view.camera.height)
+        if t > dcfg.start and t % dcfg.interval == 0:
+            size_active = dcfg.size_prune and t > dcfg.opacity_reset_interval
+            remap = densify_and_prune(self.params, self.stats, self.adam, dcfg, self.extent,
+                                      size_active, self.rngs["densify"])
+            self.method.on_densify(self, remap)
+            replaced = set(PARAM_NAMES)
+        if t % dcfg.opacity_reset_interval == 0 or (cfg.background == "white" and t == dcfg.start):
+            reset_opacity(self.params, self.adam)
+            replaced.add("opacity_logits")
+        return replaced
 
     def loss_and_grads(self, gaussians: Gaussians, view: View, rcfg: RenderConfig, t: int):
         """Render ``gaussians`` from ``view``, the loss against its image and the backward
@@ -372,6 +350,5 @@ class Trainer:
         self.loss_ema = float(meta["loss_ema"])
 
 
-__all__ = ["TrainConfig", "Trainer", "Method", "RenderRequest", "View", "METHODS", "get_method",
-           "register_method",
-           "BACKGROUNDS", "TrainingDiverged", "RNG_STREAMS", "DTYPES"]
+__all__ = ["TrainConfig", "Trainer", "View", "BACKGROUNDS", "TrainingDiverged", "RNG_STREAMS",
+           "DTYPES", "PLAIN_METHOD"]

@@ -4,6 +4,10 @@
                 [--backends ref64 ref32 fast64 fast32 fast32g torch64 torch32 gsplat]
                 [--fern-run RUN_DIR] [--repeats 3] [--profile inria] [--out DIR]
 
+Backends are resolved by the registry (refgs.backends): its names, or ``module:object`` for any
+other renderer with the backend protocol and a ``dtype``; one that cannot run here (a missing
+optional dependency, no CUDA device, another profile) is listed as n/a with the reason.
+
 For each scene (the seeded synthetic scene of ``refgs.synthetic.benchmark_scene`` at every N and
 image size, and optionally fern ``images_8`` with the Gaussians of a saved fern run) every
 available backend renders and differentiates the same float32-representable inputs (the scene
@@ -35,7 +39,6 @@ Writes ``bench.json``, ``bench.csv``, ``pareto.png`` (time against error) and ``
 from __future__ import annotations
 
 import csv
-import functools
 import io
 import json
 import os
@@ -48,16 +51,17 @@ from typing import Callable
 
 import numpy as np
 
-from .errors import ConfigError
-from .io.atomic import atomic_write_json, atomic_write_text
-from .synthetic import benchmark_scene
-from .train.checkpoint import peak_rss_gb
-from .types import RenderConfig
+from ..backends import BackendUnavailable, get_backend
+from ..errors import ConfigError
+from ..io.atomic import atomic_write_json, atomic_write_text
+from ..synthetic import benchmark_scene
+from ..train.checkpoint import cpu_name, peak_rss_gb
+from ..types import RenderConfig
 
 DEFAULT_NS = (1_000, 10_000, 50_000, 200_000)
 DEFAULT_SIZES = ("128x128", "504x378", "1008x756")
 #: The largest scene (Gaussians, pixels) a slow backend is timed on: the numpy reference up to
-#: 50k at 504x378 (issue 7: beyond that one render takes minutes), the torch transcription up to
+#: 50k at 504x378 (beyond that one render takes minutes), the torch transcription up to
 #: 10k at 504x378 (18 s per forward + backward there on the 2-core machine; it is a correctness
 #: cross-check written for clarity, not speed).
 LIMITS = {"ref64": (50_000, 504 * 378), "ref32": (50_000, 504 * 378),
@@ -66,17 +70,13 @@ LIMITS = {"ref64": (50_000, 504 * 378), "ref32": (50_000, 504 * 378),
 COTANGENT_SEED = 1
 #: seed of the synthetic scenes (refgs.synthetic.benchmark_scene)
 SCENE_SEED = 0
-#: targets of issue 7, checked and printed for the 50k / 504x378 scene
+#: the targets of docs/performance.md ("Targets"), checked and printed for the 50k / 504x378 scene
 TARGET_SCENE = (50_000, "504x378")
 TARGET_SPEEDUP = 30.0
 TARGET_IMAGE_ERR = 1e-5
 TARGET_TIE_FRACTION = 1e-4
 TARGET_GRAD_REL_L2 = 1e-4
 GRAD_FIELDS = ("means", "log_scales", "quats", "opacity_logits", "sh", "means2d")
-
-
-class Unavailable(Exception):
-    """A backend that cannot run here (reason in the message)."""
 
 
 @dataclass
@@ -91,46 +91,17 @@ class BenchBackend:
     bands: str = "float32"
 
 
-def _make_backend(name: str, profile: str) -> BenchBackend:
-    """The backend ``name`` (see ``--backends``), or Unavailable naming the missing piece."""
-    dt = "float64" if name.endswith("64") else "float32"
-    if name in ("ref64", "ref32"):
-        from .render import render, render_backward
-        return BenchBackend(name, f"refgs reference {dt}", dt, render, render_backward)
-    if name in ("fast64", "fast32"):
-        try:
-            from . import fast
-        except ImportError as e:
-            raise Unavailable(str(e)) from None
-        return BenchBackend(name, f"refgs.fast {dt}", dt, fast.render, fast.render_backward)
-    if name == "fast32g":
-        try:
-            from . import fast
-        except ImportError as e:
-            raise Unavailable(str(e)) from None
-        return BenchBackend(name, "refgs.fast float32 compositing, float64 geometry", "float32",
-                            functools.partial(fast.render, geometry="float64"),
-                            fast.render_backward, "float32-compositing")
-    if name in ("torch64", "torch32"):
-        try:
-            from oracle.adapters.torch_backend import TorchBackend
-            be = TorchBackend(profile, dt)
-        except ImportError as e:
-            raise Unavailable(f"torch transcription: {e}") from None
-        return BenchBackend(name, f"torch autograd transcription {dt}", dt, be.render,
-                            be.render_backward)
-    if name == "gsplat":
-        try:
-            from oracle.adapters.gsplat_backend import gsplat_backend as be
-        except ImportError as e:
-            raise Unavailable(f"gsplat: {e}") from None
-        if be.unavailable_reason:
-            raise Unavailable(be.unavailable_reason)
-        return BenchBackend(name, "gsplat 1.5.3 rasterization float32", "float32", be.render,
-                            be.render_backward)
-    raise ConfigError(f"--backends: unknown backend {name!r}; expected one of {', '.join(ALL_BACKENDS)}")
+def bench_backend(name: str, profile: str) -> BenchBackend:
+    """The backend ``name`` of ``--backends`` (a name of refgs.backends or module:object) at
+    ``profile``; BackendUnavailable naming the missing piece when it cannot run here."""
+    be = get_backend(name, profile, flag="--backends")
+    if be.dtype not in ("float32", "float64"):
+        raise ConfigError(f"--backends {name}: declares no dtype (expected a 'dtype' attribute, "
+                          f"float32 or float64, got {be.dtype!r})")
+    return BenchBackend(name, be.label, be.dtype, be.render, be.render_backward, be.bands)
 
 
+#: Every backend of the registry the bench times by default (each renders one dtype).
 ALL_BACKENDS = ("ref64", "ref32", "fast64", "fast32", "fast32g", "torch64", "torch32", "gsplat")
 
 
@@ -156,10 +127,9 @@ def synthetic_scenes(ns, sizes):
 def fern_scene(run_dir: str | Path):
     """A saved run's Gaussians (its checkpoint's exact parameters, as ``refgs eval`` uses them;
     the run may be unfinished) seen from its first test view."""
-    from .cli import _restore
-    from .types import Gaussians
-    run_dir = Path(run_dir).absolute()
-    _, cfg, trainer = _restore(run_dir)
+    from ..runs import load
+    from ..types import Gaussians
+    _, cfg, trainer = load(run_dir)
     g = Gaussians(**{k: np.asarray(v, np.float64) for k, v in trainer.params.items()})
     view = trainer.test_views[0]
     cam = view.camera
@@ -199,17 +169,17 @@ def _grad_errors(got, ref, rows=None) -> dict:
 
 def tie_bands(key: str):
     """The refgs.fast.ties bands of a BenchBackend.bands key."""
-    from .fast.ties import FLOAT32_BANDS, GEOMETRY64_BANDS
+    from ..fast.ties import FLOAT32_BANDS, GEOMETRY64_BANDS
     return {"float32": FLOAT32_BANDS, "float32-compositing": GEOMETRY64_BANDS}[key]
 
 
 def _fast64_render(g64, cam, cfg):
     """A float64 refgs.fast render for the tie flags, or None without numba."""
     try:
-        from . import fast
-    except ImportError:
+        be = get_backend("fast64", cfg.profile, flag="--backends")
+    except BackendUnavailable:
         return None
-    return fast.render(g64, cam, cfg)
+    return be.render(g64, cam, cfg)
 
 
 def bench_scene(label, n, size, g64, cam, backends, repeats: int, profile: str) -> dict:
@@ -244,7 +214,7 @@ def bench_scene(label, n, size, g64, cam, backends, repeats: int, profile: str) 
         # find_ties reads); made here, untimed, when fast64 is not among the backends
         tie_src = outs["fast64"][0] if "fast64" in outs else _fast64_render(g64, cam, cfg)
         if tie_src is not None:
-            from .fast.ties import find_ties
+            from ..fast.ties import find_ties
             ties = {k: find_ties(tie_src, tie_bands(k)) for k in keys}
     if "fast64" in outs:
         res["pixel_gaussian_pairs"] = 256 * int(outs["fast64"][0].cache["lists"]["full_size"])
@@ -295,8 +265,7 @@ def bench_scene(label, n, size, g64, cam, backends, repeats: int, profile: str) 
 
 
 def machine_info() -> dict:
-    from .train.checkpoint import _cpu_name
-    info = {"machine": platform.machine(), "cpu": _cpu_name(), "cpus": os.cpu_count(),
+    info = {"machine": platform.machine(), "cpu": cpu_name(), "cpus": os.cpu_count(),
             "python": platform.python_version(), "numpy": np.__version__,
             "loadavg_before": list(os.getloadavg())}
     try:
@@ -309,7 +278,7 @@ def machine_info() -> dict:
         info["torch"], info["torch_threads"] = torch.__version__, torch.get_num_threads()
     except ImportError:
         info["torch"] = None
-    from . import __version__
+    from .. import __version__
     info["refgs"] = __version__
     return info
 
@@ -372,7 +341,7 @@ def _plain(obj):
 
 
 def targets(results: list[dict]) -> dict | None:
-    """Issue 7's targets on the 50k / 504x378 scene, if it ran with ref64 and fast32 (and, when
+    """The targets (docs/performance.md) on the 50k / 504x378 scene, if it ran with ref64 and fast32 (and, when
     it ran, the same for fast32g under the key "fast32g")."""
     for r in results:
         if (r["n"], r["size"]) == TARGET_SCENE and r["scene"].startswith("synthetic"):
@@ -494,7 +463,9 @@ def add_parser(sub) -> None:
     b.add_argument("--n", type=int, nargs="*", default=list(DEFAULT_NS),
                    help="Gaussians of the synthetic scenes (none: only --fern-run)")
     b.add_argument("--size", nargs="+", default=list(DEFAULT_SIZES))
-    b.add_argument("--backends", nargs="+", default=list(ALL_BACKENDS))
+    b.add_argument("--backends", nargs="+", default=list(ALL_BACKENDS),
+                   help="names of refgs.backends or module:object (default: all of "
+                        f"{' '.join(ALL_BACKENDS)})")
     b.add_argument("--fern-run", help="a saved run directory: also bench its model.ply on its first test view")
     b.add_argument("--repeats", type=int, default=3)
     b.add_argument("--profile", default="inria", choices=("inria", "gsplat"))
@@ -515,9 +486,9 @@ def run(args, progress: bool = True) -> dict:
     backends, unavailable = [], {}
     for name in args.backends:
         try:
-            backends.append(_make_backend(name, args.profile))
-        except Unavailable as e:
-            unavailable[name] = " ".join(str(e).split())
+            backends.append(bench_backend(name, args.profile))
+        except BackendUnavailable as e:
+            unavailable[name] = " ".join(e.reason.split())
     if not backends:
         raise ConfigError("--backends: none of the chosen backends can run here: " + json.dumps(unavailable))
     out_dir = Path(args.out)
@@ -554,4 +525,5 @@ def run(args, progress: bool = True) -> dict:
     return doc
 
 
-__all__ = ["run", "bench_scene", "table", "growth_exponents", "targets", "LIMITS", "ALL_BACKENDS"]
+__all__ = ["run", "bench_backend", "BenchBackend", "bench_scene", "table", "growth_exponents",
+           "targets", "LIMITS", "ALL_BACKENDS"]

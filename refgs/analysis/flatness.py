@@ -21,11 +21,13 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import ConfigError
-from .io.atomic import atomic_path, atomic_write_json, atomic_write_text
-from .metrics.psnr import psnr
-from .methods.flat_minima import DEFAULT_CLAMP, P_PERTURB, sap_offsets
+from ..errors import ConfigError
+from ..io.atomic import atomic_path, atomic_write_json, atomic_write_text
+from ..metrics.psnr import psnr
+from ..methods.flat_minima import DEFAULT_CLAMP, P_PERTURB, sap_offsets
 
+#: Files written into ``--out``.
+FLATNESS_JSON, FLATNESS_CSV, FLATNESS_PLOT = "flatness.json", "flatness.csv", "flatness.png"
 #: The paper's figure: gamma on the x axis, 5 seeds.  [FM-12]
 DEFAULT_GAMMAS = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0)
 DEFAULT_SEEDS = 5
@@ -87,7 +89,8 @@ def flatness_curve(trainer, gammas=DEFAULT_GAMMAS, seeds: int = DEFAULT_SEEDS,
     return res
 
 
-def _plot(curves: dict, path: Path) -> None:
+def plot_curves(curves: dict, path: Path) -> None:
+    """{label: flatness_curve result} as train and test panels, PSNR against gamma (mean +- std)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -114,23 +117,21 @@ def add_parser(sub) -> None:
     f.add_argument("--gammas", type=float, nargs="+", default=list(DEFAULT_GAMMAS))
     f.add_argument("--seeds", type=int, default=DEFAULT_SEEDS)
     f.add_argument("--settings", default="flatness", choices=sorted(SETTINGS))
-    f.add_argument("--backend", help="render with this backend instead of the run's")
+    f.add_argument("--backend", help="render with this backend instead of the run's (a name of "
+                   "refgs.backends or module:object)")
     f.add_argument("--out", default="flatness-out")
     f.add_argument("--quiet", action="store_true")
 
 
 def run(args) -> dict:
     """The ``refgs flatness`` command; returns {run label: curve}."""
-    from .cli import _restore
-    from .train.backend import get_backend
+    from ..runs import load
 
     _check(args.gammas, args.seeds, args.settings)
     curves = {}
     trainers = []
     for rd in args.run_dirs:
-        _, cfg, trainer = _restore(Path(rd).absolute())
-        if args.backend:
-            trainer.backend = get_backend(args.backend)
+        _, cfg, trainer = load(rd, backend=args.backend)
         label = f"{Path(rd).name} ({cfg.method}, t={trainer.t})"
         trainers.append((label, trainer))
     total = len(trainers) * len(args.gammas) * args.seeds
@@ -145,7 +146,7 @@ def run(args) -> dict:
         bar.close()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    atomic_write_json(out / "flatness.json", {"runs": curves})
+    atomic_write_json(out / FLATNESS_JSON, {"runs": curves})
     buf = io.StringIO()
     w = csv.writer(buf)
     w.writerow(["run", "gamma", "train_psnr_mean", "train_psnr_std", "test_psnr_mean", "test_psnr_std"])
@@ -153,8 +154,8 @@ def run(args) -> dict:
         for i, gmm in enumerate(c["gammas"]):
             w.writerow([label, gmm, c["train"]["mean"][i], c["train"]["std"][i], c["test"]["mean"][i],
                         c["test"]["std"][i]])
-    atomic_write_text(out / "flatness.csv", buf.getvalue())
-    _plot(curves, out / "flatness.png")
+    atomic_write_text(out / FLATNESS_CSV, buf.getvalue())
+    plot_curves(curves, out / FLATNESS_PLOT)
     if not args.quiet:
         for label, c in curves.items():
             print(label)
@@ -166,4 +167,5 @@ def run(args) -> dict:
     return curves
 
 
-__all__ = ["flatness_curve", "run", "DEFAULT_GAMMAS", "DEFAULT_SEEDS", "SETTINGS"]
+__all__ = ["flatness_curve", "plot_curves", "run", "DEFAULT_GAMMAS", "DEFAULT_SEEDS", "SETTINGS",
+           "FLATNESS_JSON", "FLATNESS_CSV", "FLATNESS_PLOT"]

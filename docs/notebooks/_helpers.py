@@ -1,4 +1,9 @@
-"""Drawing and checking helpers for the teaching notebooks in docs/notebooks/ (issue 9).
+"""Drawing and checking helpers for the teaching notebooks of this folder.
+
+The notebooks import it as ``_helpers``: Jupyter starts their kernel in this folder, and
+``python docs/notebooks/NN_name.py`` puts the script's folder first on ``sys.path``; from anywhere
+else put this folder on ``PYTHONPATH`` (tests/test_notebooks.py does).  It is not part of the
+``refgs`` package.
 
 Nothing here is part of the spec: the notebooks call the spec's own functions (``refgs.render``,
 the stage functions, ``refgs.methods``, ``oracle``) and use these helpers only to draw, to
@@ -20,14 +25,15 @@ import tempfile
 
 import numpy as np
 
-from .constants import TILE_SIZE
+from refgs.constants import TILE_SIZE
 
 #: Finite-difference step for :func:`fd_gradient` in float64.  With Richardson extrapolation the
 #: truncation error is O(h^4) ~ 1e-16 and the round-off error ~ 1e-16 |f| / h ~ 1e-12 |f|, both far
-#: below the 1e-6 relative tolerance the notebooks assert (common.md: FD checks in float64).
+#: below the 1e-6 relative tolerance the notebooks assert (FD checks in float64).
 FD_STEP = 1e-4
 
-#: Demo scene downsampling for the tiny training run: 160 x 120 / 4 = 40 x 30 pixels (issue 9).
+#: Demo scene downsampling for the tiny training run: 160 x 120 / 4 = 40 x 30 pixels, small enough
+#: for notebook 4 to train two runs within two minutes on two cores; our choice.
 TINY_FACTOR = 4
 #: Triangulation preset for the tiny run's initial points (refgs.data.triangulate).
 TINY_TRIANGULATION = "tuned"
@@ -180,10 +186,10 @@ def tiny_demo_views(n_views: int = 3, factor: int = TINY_FACTOR, sh_degree: int 
     Returns {"train": [View], "test": [View], "gaussians": Gaussians (DAT-13/14),
     "extent": float (TRN-02), "points": (P, 3), "scene": Path}.
     """
-    from .data import (demo_scene_path, init_gaussians_from_points, load_scene, split_views,
-                       triangulate_train_views)
-    from .train.schedule import scene_extent
-    from .train.trainer import View
+    from refgs.data import (demo_scene_path, init_gaussians_from_points, load_scene, split_views,
+                            triangulate_train_views)
+    from refgs.train.schedule import scene_extent
+    from refgs.train.trainer import View
 
     path = demo_scene_path()
     full = load_scene(path, images="images", dtype=dtype)

@@ -2,7 +2,7 @@
 
     refgs figures RUN_DIR [RUN_DIR ...] [--flatness DIR_OR_JSON ...] [--out figures]
 
-One command, one folder (``figures/`` by default, which git ignores: renders of ``../shared``
+One command, one folder (``figures/`` by default, which git ignores: renders of the real
 scenes are not committed).  It writes
 
 - ``renders_<run>.png`` -- for each run, every test view: the render beside its ground truth and
@@ -28,8 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import ConfigError
-from .io.atomic import atomic_path, atomic_write_text
+from ..errors import ConfigError
+from ..io.atomic import atomic_path, atomic_write_text
 
 #: Upper end of the error colour map (absolute error, images in [0, 1]); larger errors saturate.
 ERROR_VMAX = 0.25
@@ -45,7 +45,7 @@ def _safe(name: str) -> str:
 
 def load_figure_run(run_dir: str | Path) -> dict:
     """config, metrics, history and label of a finished run; ConfigError naming the file."""
-    from .cli import CONFIG_FILE, HISTORY_FILE, METRICS_FILE
+    from ..runs import CONFIG_FILE, HISTORY_FILE, METRICS_FILE
     from .tables import method_label, read_run_json
 
     run_dir = Path(run_dir).absolute()
@@ -60,7 +60,7 @@ def load_figure_run(run_dir: str | Path) -> dict:
 
 def reinit_iterations(settings: dict) -> list[int]:
     """Iterations at which the run's method reinitialises (FM-06); [] if it does not."""
-    from .methods.flat_minima import REINIT_INTERVAL, is_reinit_iteration
+    from ..methods.flat_minima import REINIT_INTERVAL, is_reinit_iteration
 
     params = settings.get("method_params") or {}
     uses_fm = settings.get("method") == "fm" or params.get("fm", False)
@@ -75,8 +75,8 @@ def _pairs(run: dict, views_cache: dict):
     """[(view name, render (H, W, 3), ground truth (H, W, 3))] of a run's test views."""
     from PIL import Image
 
-    from .cli import RENDER_DIR, _restore, load_views
-    from .train.trainer import TrainConfig
+    from ..runs import RENDER_DIR, load, load_views
+    from ..train.trainer import TrainConfig
 
     cfg = TrainConfig.from_dict(run["settings"])
     key = (cfg.scene, cfg.images, cfg.resolution, cfg.views, cfg.holdout, cfg.dtype)
@@ -90,7 +90,7 @@ def _pairs(run: dict, views_cache: dict):
             img = np.asarray(Image.open(png).convert("RGB"), np.float64) / 255.0
         else:
             if trainer is None:
-                _, _, trainer = _restore(run["dir"])
+                trainer = load(run["dir"]).trainer
             img = trainer.render_view(v)
         gt = np.asarray(v.image, np.float64)
         if img.shape != gt.shape:
@@ -103,8 +103,7 @@ def _pairs(run: dict, views_cache: dict):
 def has_images(run: dict) -> bool:
     """Whether a run's test renders can be shown: saved PNGs or a checkpoint to render from
     (a record of ``refgs record`` has neither)."""
-    from .cli import RENDER_DIR
-    from .train.checkpoint import CHECKPOINT_FILE
+    from ..runs import CHECKPOINT_FILE, RENDER_DIR
 
     return (run["dir"] / RENDER_DIR / "test").is_dir() or (run["dir"] / CHECKPOINT_FILE).is_file()
 
@@ -121,7 +120,7 @@ def plot_renders(run: dict, path: Path, views_cache: dict | None = None) -> None
     """Render | ground truth | |error| for each test view of one run (``views_cache``: test views
     already loaded, keyed by scene settings, shared between the runs of one call)."""
     import matplotlib.pyplot as plt
-    from .metrics.psnr import psnr
+    from ..metrics.psnr import psnr
 
     pairs = _pairs(run, {} if views_cache is None else views_cache)
     if not pairs:
@@ -195,12 +194,13 @@ def plot_gaussians(runs: list, path: Path) -> None:
 
 def load_flatness(paths) -> dict:
     """{label: curve} from flatness.json files or the folders that hold them."""
+    from .flatness import FLATNESS_JSON
     from .tables import read_run_json
 
     curves = {}
     for p in paths:
         p = Path(p)
-        f = p / "flatness.json" if p.is_dir() else p
+        f = p / FLATNESS_JSON if p.is_dir() else p
         data = read_run_json(f)
         if "runs" not in data:
             raise ConfigError(f"{f}: expected the output of refgs flatness (a 'runs' entry)")
@@ -211,7 +211,7 @@ def load_flatness(paths) -> dict:
 
 def make_figures(run_dirs, flatness=(), out: str | Path = DEFAULT_OUT) -> list[Path]:
     """Every figure of the module docstring into ``out``; returns the files written."""
-    from .flatness import _plot as plot_flatness
+    from .flatness import plot_curves as plot_flatness
 
     if not run_dirs and not flatness:
         raise ConfigError("refgs figures: give at least one RUN_DIR or --flatness")
@@ -222,7 +222,7 @@ def make_figures(run_dirs, flatness=(), out: str | Path = DEFAULT_OUT) -> list[P
     import matplotlib
     matplotlib.use("Agg")
     views_cache: dict = {}
-    written, index = [], ["# refgs figures", "", "Made by `refgs figures` (refgs/figures.py).", ""]
+    written, index = [], ["# refgs figures", "", "Made by `refgs figures` (refgs/analysis/figures.py).", ""]
     for run in runs:
         if not has_images(run):
             index.append(f"- no renders of {run['dir']} ({run['label']}): a record (refgs "

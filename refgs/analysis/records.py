@@ -21,18 +21,20 @@ import json
 import time
 from pathlib import Path
 
-from .errors import ConfigError
-from .io.atomic import atomic_write_bytes, atomic_write_text
+from ..errors import ConfigError
+from ..io.atomic import atomic_write_bytes, atomic_write_text
+from ..runs import CONFIG_FILE, HISTORY_FILE, METRICS_FILE
+from .flatness import FLATNESS_CSV, FLATNESS_JSON
 
 DEFAULT_OUT = "results/records"
 #: decimals kept per history field (what a plot or a table can show; our choice): loss to 1e-6,
 #: PSNR to 1e-3 dB, seconds to 0.1 ms.  Fields not listed (iterations, Gaussian counts) are kept.
 RECORD_DECIMALS = {"train_loss": 6, "train_psnr": 3, "test_psnr": 3, "iter_seconds": 4,
                    "iter_cpu_seconds": 4}
-RUN_FILES = ("config.json", "metrics.json")
-FLATNESS_FILES = ("flatness.json", "flatness.csv")
+#: The run files a record copies byte for byte (besides the rounded HISTORY_FILE).
+RUN_FILES = (CONFIG_FILE, METRICS_FILE)
+FLATNESS_FILES = (FLATNESS_JSON, FLATNESS_CSV)
 RECORD_FILE = "record.json"
-HISTORY_FILE = "history.json"
 
 
 def _read_json(path: Path) -> dict:

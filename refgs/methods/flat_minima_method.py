@@ -1,15 +1,19 @@
-"""The paper's method and DropGaussian as trainer Methods (clauses FM-05..FM-08, DG-01, DG-02).
+"""The paper's flat-minima method as a training method: its hooks in the trainer (FM-01..FM-11).
 
-The trainer (refgs/train/trainer.py) calls these hooks; the ideas themselves live in
-flat_minima.py and dropgaussian.py.  One iteration of ``fm``:
+The ideas themselves (Scale-Adaptive Perturbation, mask, schedule, clamp, reinit values) are
+refgs/methods/flat_minima.py, one function per idea; this module plugs them into the loop through
+the hooks of refgs/train/hooks.py.  One iteration t of ``--method fm``:
 
-    render_request   delta, mask = sap_offsets(theta, gamma, p, alpha(t), clamp, rng)   (FM-01..04)
-                     render theta_hat = theta with means + delta
-    param_gradients  grad L(theta_hat) applied to theta: the position gradient at x + delta is
-                     the gradient of x (delta is a constant), other fields unchanged      (FM-05)
-    frozen_rows      fields reinitialised less than W iterations ago take no step       (FM-08)
-    after_densify    frozen state follows rows through clone / split / prune            (FM-08)
-    after_step       at t = 1000 k <= T - 1000: reinit scale, rotation, SH rest; opacity reset (FM-06/07)
+    before_render    delta, m = sap_offsets(theta, gamma, p, alpha(t), clamp, rng)   (FM-01..FM-04)
+                     render theta_hat = theta with means x + delta                    (paper eq. SAP)
+    after_backward   grad L(theta_hat) is the gradient of theta: delta is a constant   (FM-05)
+    on_densify       the frozen state follows its rows through clone / split / prune    (FM-08)
+    frozen_rows      fields reinitialised less than W iterations ago take no step      (FM-08)
+    after_step       at t = 1000 k <= T - 1000: reinit scale, rotation, SH above degree 0
+                     with their Adam moments, then the opacity reset               (FM-06, FM-07)
+
+With ``dropgaussian=True`` it is the plug-in on DropGaussian (``--method dropgaussian --fm``):
+theta_hat is rendered with DropGaussian's opacity scale too (DG-01, DG-02).
 """
 from __future__ import annotations
 
@@ -17,16 +21,18 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
+from ..errors import ConfigError
 from ..train.densify import reset_opacity
-from ..train.trainer import Method, RenderRequest, register_method
-from .dropgaussian import R_MAX, drop_opacity_scale
+from ..train.hooks import Method, RenderRequest
+from .dropgaussian import R_MAX
+from .dropgaussian_method import DropGaussianMethod
 from .flat_minima import (DEFAULT_CLAMP, GAMMA, ISO_FIXED_FRACTION, P_PERTURB, PERTURB_TARGETS,
                           REINIT_INTERVAL, REINIT_WINDOW, NoiseShape, is_reinit_iteration,
                           magnitude_schedule, perturb_other, perturb_probability, reinit_values,
                           sap_offsets)
 
-#: Parameter fields reinitialised and frozen by FM-07/FM-08 (SH: only coefficients k >= 1).
-REINIT_FIELDS = ("log_scales", "quats", "sh")
+#: The SH coefficients that keep training through a reinit: the DC term, k = 0 (FM-07).
+SH_KEPT = 1
 
 
 @dataclass(frozen=True)
@@ -53,33 +59,30 @@ class FlatMinimaConfig:
 
     def __post_init__(self):
         if self.perturb not in PERTURB_TARGETS:
-            raise ValueError(f"--fm-perturb: expected one of {PERTURB_TARGETS}, got {self.perturb!r}")
+            raise ConfigError(f"--fm-perturb: expected one of {PERTURB_TARGETS}, got {self.perturb!r}")
 
     def to_dict(self) -> dict:
         return asdict(self)
 
 
-class DropGaussianMethod(Method):
-    """DropGaussian (DG-01): random drop with opacity compensation during training only."""
-
-    name = "dropgaussian"
-
-    def __init__(self, r_max: float = R_MAX):
-        self.r_max = float(r_max)
-
-    def params_dict(self) -> dict:
-        return {"drop_r_max": self.r_max}
-
-    def opacity_scale(self, trainer, t: int, rng: np.random.Generator):
-        scale, _ = drop_opacity_scale(trainer.n, t, trainer.cfg.iters, rng, self.r_max)
-        return scale
-
-    def render_request(self, trainer, t, rng):
-        return RenderRequest(trainer.gaussians(), opacity_scale=self.opacity_scale(trainer, t, rng))
+def reinit_field_rows(rows: np.ndarray, n_sh: int) -> dict:
+    """The entries FM-07 reinitialises and FM-08 freezes, on the Gaussians ``rows`` (N,) bool:
+    name -> a bool array broadcasting against the parameter (whole rows of log-scales and
+    rotations; SH coefficients k >= 1 of the rows, shape (N, n_sh, 1)).  The form that
+    ``Adam.step`` (``frozen_rows``) and ``Adam.reset_rows`` take."""
+    sh = np.zeros((len(rows), n_sh, 1), bool)
+    sh[:, SH_KEPT:, 0] = rows[:, None]
+    return {"log_scales": rows, "quats": rows, "sh": sh}
 
 
 class FlatMinimaMethod(Method):
-    """The paper's method (FM-01..FM-08); with ``dropgaussian=True`` the plug-in on DropGaussian."""
+    """The paper's method (FM-01..FM-11); with ``dropgaussian=True`` the plug-in on DropGaussian.
+
+    config  FlatMinimaConfig;  r_max  DropGaussian's largest drop rate (plug-in only)
+    State: ``frozen_until`` (N,) int64, per Gaussian the last iteration of its frozen window
+    (checkpointed as ``method/frozen_until``); ``last_mask`` (N,) bool, the perturbation mask of
+    the latest ``before_render``.
+    """
 
     name = "fm"
 
@@ -89,13 +92,13 @@ class FlatMinimaMethod(Method):
         self.drop = DropGaussianMethod(r_max) if dropgaussian else None
         if dropgaussian:
             self.name = "dropgaussian+fm"
-        self.frozen_until = np.zeros(0, np.int64)   # per Gaussian: last iteration without a step
+        self.frozen_until = np.zeros(0, np.int64)
         self.last_mask = np.zeros(0, bool)
         #: noise "iso_fixed": the standard deviation (None until ``setup`` resolves the default)
         self.fixed_sigma = config.noise_fixed_sigma
 
     def params_dict(self) -> dict:
-        d = {f"fm_{k}": v for k, v in self.config.to_dict().items()}
+        d = self.config.to_dict()
         if self.drop is not None:
             d.update(self.drop.params_dict())
         return d
@@ -106,8 +109,8 @@ class FlatMinimaMethod(Method):
         if self.fixed_sigma is None:       # FM-01: half the densification size threshold
             self.fixed_sigma = ISO_FIXED_FRACTION * trainer.cfg.densify.percent_dense * trainer.extent
 
-    # FM-01..FM-04: theta_hat
-    def render_request(self, trainer, t, rng):
+    # FM-01..FM-04: theta_hat (paper eqs. SAP, stochastic, schedule)
+    def before_render(self, trainer, t, rng):
         cfg = self.config
         total = trainer.cfg.iters
         alpha = magnitude_schedule(t, total) if cfg.schedule else 1.0
@@ -128,7 +131,7 @@ class FlatMinimaMethod(Method):
                              extra={"offsets": offsets, "mask": mask})
 
     # FM-05: the gradient at theta_hat is applied to theta (delta is a constant)
-    def param_gradients(self, trainer, t, request, grads):
+    def after_backward(self, trainer, t, request, grads):
         if not self.config.mixed_loss:
             return grads.params()
         # FM-11: 0.5 grad L(theta_hat) + 0.5 grad L(theta); statistics stay the perturbed ones
@@ -137,22 +140,21 @@ class FlatMinimaMethod(Method):
         pert, cl = grads.params(), clean.params()
         return {k: 0.5 * pert[k] + 0.5 * cl[k] for k in pert}
 
-    # FM-08: frozen window
+    # FM-08: children of frozen Gaussians inherit the frozen state
+    def on_densify(self, trainer, remap) -> None:
+        self.frozen_until = self.frozen_until[np.asarray(remap.parent, np.int64)] \
+            if self.frozen_until.size else np.zeros(trainer.n, np.int64)
+
+    # FM-08: the frozen window
     def frozen_rows(self, trainer, t):
         if not self.config.reinit:
             return None
         rows = self.frozen_until >= t
         if not rows.any():
             return None
-        sh_mask = np.zeros(trainer.params["sh"].shape[:2] + (1,), bool)
-        sh_mask[:, 1:, 0] = rows[:, None]            # DC colour keeps training
-        return {"log_scales": rows, "quats": rows, "sh": sh_mask}
+        return reinit_field_rows(rows, trainer.params["sh"].shape[1])
 
-    def after_densify(self, trainer, remap) -> None:
-        self.frozen_until = self.frozen_until[np.asarray(remap.parent, np.int64)] \
-            if self.frozen_until.size else np.zeros(trainer.n, np.int64)
-
-    # FM-06/FM-07: periodic reinitialisation (after densify of the same iteration)
+    # FM-06/FM-07: periodic reinitialisation (after the densification of the same iteration)
     def after_step(self, trainer, t, rng):
         cfg = self.config
         if not cfg.reinit or not is_reinit_iteration(t, trainer.cfg.iters, cfg.reinit_interval):
@@ -161,16 +163,13 @@ class FlatMinimaMethod(Method):
         vals = reinit_values(p["means"], p["sh"].shape[1], p["means"].dtype)
         p["log_scales"][...] = vals["log_scales"]
         p["quats"][...] = vals["quats"]
-        p["sh"][:, 1:, :] = 0
-        for name in REINIT_FIELDS:
-            if name == "sh":
-                trainer.adam.m["sh"][:, 1:, :] = 0
-                trainer.adam.v["sh"][:, 1:, :] = 0
-            else:
-                trainer.adam.zero(name)
+        p["sh"][:, SH_KEPT:, :] = 0
+        every = np.ones(trainer.n, bool)             # FM-07: all current Gaussians
+        for name, rows in reinit_field_rows(every, p["sh"].shape[1]).items():
+            trainer.adam.reset_rows(name, rows)
         self.frozen_until = np.full(trainer.n, t + cfg.reinit_window, np.int64)
-        # "opacity is reset at each interval following the standard mechanism"; skip if the
-        # standard schedule already reset it at this iteration
+        # "opacity is reset at each interval following the standard mechanism" (TRN-06); once:
+        # not again when the standard schedule already reset it at this iteration
         dcfg = trainer.cfg.densify
         standard = t < dcfg.resolved_until(trainer.cfg.iters) and t % dcfg.opacity_reset_interval == 0
         if cfg.reinit_opacity_reset and not standard:
@@ -184,30 +183,4 @@ class FlatMinimaMethod(Method):
             self.frozen_until = np.asarray(arrays["frozen_until"], np.int64)
 
 
-def make_method(name: str, fm: bool = False, fm_config: FlatMinimaConfig = FlatMinimaConfig(),
-                r_max: float = R_MAX) -> Method:
-    """--method {3dgs, fm, dropgaussian} [--fm] (DG-02)."""
-    if name == "fm":
-        return FlatMinimaMethod(fm_config)
-    if name == "dropgaussian":
-        return FlatMinimaMethod(fm_config, dropgaussian=True, r_max=r_max) if fm else DropGaussianMethod(r_max)
-    if name == "3dgs":
-        return FlatMinimaMethod(fm_config) if fm else Method()
-    raise ValueError(f"--method: expected 3dgs, fm or dropgaussian, got {name!r}")
-
-
-#: method_params keys (config.json) -> FlatMinimaConfig fields
-_FM_KEYS = tuple(FlatMinimaConfig.__dataclass_fields__)
-
-
-def _factory(name: str):
-    def build(fm: bool = False, r_max: float = R_MAX, **fm_params) -> Method:
-        unknown = set(fm_params) - set(_FM_KEYS)
-        if unknown:
-            raise ValueError(f"method parameters: unknown {sorted(unknown)}; expected {list(_FM_KEYS)}")
-        return make_method(name, fm=fm, fm_config=FlatMinimaConfig(**fm_params), r_max=r_max)
-    return build
-
-
-for _name in ("3dgs", "fm", "dropgaussian"):
-    register_method(_name, _factory(_name))
+__all__ = ["FlatMinimaConfig", "FlatMinimaMethod", "reinit_field_rows"]
