@@ -8,12 +8,12 @@ For each run directory (its ``checkpoint.npz``: a finished or an interrupted run
 only read), each ``--source`` (a refgs source tree put first on PYTHONPATH: e.g. ``new=.`` and
 ``old=/path/to/an/older/checkout``; default: this checkout) and each repeat, a fresh worker
 process restores the trainer from the checkpoint, sets the iteration counter to ``--from``
-(default: the checkpoint's, or ``iters - 1000`` for a finished run), runs ``--warmup`` iterations
-(compilation / cache loads) and then times ``--steps`` iterations phase by phase.  The sources
-take turns within each repeat, so old and new code see the same load on the machine; the table
-gives the median over the repeats of each phase, in ms per iteration, and the ratio to the first
-source.  ``:DTYPE`` casts the parameters and Adam's moments (``float32``: what ``--dtype float32``
-trains in); ``:GEOMETRY`` ``float64`` renders float32 Gaussians with
+(default: the checkpoint's, or ``iters - FINISHED_RUN_BACK`` for a finished run), runs
+``--warmup`` iterations (compilation / cache loads) and then times ``--steps`` iterations phase by
+phase.  The sources take turns within each repeat, so old and new code see the same load on the
+machine; the table gives the median over the repeats of each phase, in ms per iteration, and the
+ratio to the first source.  ``:DTYPE`` casts the parameters and Adam's moments (``float32``: what
+``--dtype float32`` trains in); ``:GEOMETRY`` ``float64`` renders float32 Gaussians with
 ``refgs.fast.render(..., geometry="float64")`` (docs/fast.md, "Mixed precision").
 
 Phases are timed by wrapping the functions that do them, exclusively (a phase's time excludes
@@ -55,6 +55,10 @@ import numpy as np
 #: degree-13 polynomial) + 13 (alpha, T test, 4 blends) = 43; backward 9 + 21 + 48 (alpha, T
 #: recovery by a division, suffix, v_alpha, conic/mean gradient and 10 accumulations) = 78.
 FLOPS_PER_PAIR = 121
+#: a finished run is profiled from iteration iters - FINISHED_RUN_BACK: half-way between two of
+#: FM's re-initialisations (every 1000 iterations, each followed by a 100-iteration frozen window
+#: and an opacity reset), where an iteration costs what most of the run's do
+FINISHED_RUN_BACK = 500
 #: side of the float32 matrix product that measures the compute limit (2 n^3 flops)
 SGEMM_N = 2048
 #: bytes per array of the stream measurement (copy: read + write)
@@ -67,8 +71,10 @@ KERNEL_PHASES = {
     "gaussians_forward": "projection",
     "tile_alive": "tile lists", "tile_counts": "tile lists", "tile_fill": "tile lists",
     "composite_forward": "composite fwd", "composite_backward": "composite bwd",
+    "composite_forward_fma": "composite fwd", "composite_backward_fma": "composite bwd",
     "reduce_by_gaussian": "per-Gaussian bwd", "gaussians_backward": "per-Gaussian bwd",
     "_correlate_rows": "SSIM", "_correlate_cols": "SSIM", "_pointwise": "SSIM", "_combine": "SSIM",
+    "_pass_moments": "SSIM", "_pass_adjoint": "SSIM",
     "_update": "Adam",
 }
 PHASES = ("projection", "depth sort", "tile lists", "composite fwd", "composite bwd",
@@ -157,15 +163,17 @@ def _instrument(trainer, phases: Phases) -> None:
     trainer.adam.step = phases.wrap(trainer.adam.step, "Adam")
     for hook in METHOD_HOOKS:
         if hasattr(trainer.method, hook):
-            setattr(trainer.method, hook, phases.wrap(getattr(trainer.method, hook), "method hooks"))
+            timed = phases.wrap(getattr(trainer.method, hook), "method hooks")
+            setattr(trainer.method, hook, timed)
     trainer.step = phases.wrap(trainer.step, "trainer glue")
 
 
 def count_pairs(out) -> tuple[int, int]:
     """(blended fragments, candidate lane pairs) of a refgs.fast render: the pixel-Gaussian pairs
     the compositing blends (counted per pixel over its live tile list up to its last blended
-    slot, in float64), and 16 x the row-slot pairs the lanes evaluate (0 if the render keeps no
-    row lists)."""
+    slot, in float64), and the (pixel, slot) pairs the screen hands to the forward's lanes (row
+    lists or half-row masks; an upper bound: a row stops once its pixels have; 0 if the render
+    keeps neither)."""
     from numba import njit
 
     @njit(cache=False)
@@ -194,8 +202,14 @@ def count_pairs(out) -> tuple[int, int]:
     m2 = np.asarray(c.get("means2d_compositing", out.means2d), np.float64)
     n = blended(c["lists"]["gauss"], c["lists"]["offsets"], c["last"], m2,
                 out.conics.astype(np.float64), out.opacities.astype(np.float64), gx, TILE_SIZE)
-    rows = c.get("rows")
-    lanes = int(np.sum(rows[0])) * TILE_SIZE if rows is not None else 0
+    if "row_mask" in c:                     # per intersection, the half rows its screen kept
+        m = c["row_mask"].astype(np.int64)
+        half = TILE_SIZE // 2
+        lanes = int(sum(int(np.count_nonzero((m >> b) & 1)) for b in range(2 * TILE_SIZE))) * half
+    elif "rows" in c:                       # per tile and row, the number of slots
+        lanes = int(np.sum(c["rows"][0])) * TILE_SIZE
+    else:
+        lanes = 0
     return int(n), lanes
 
 
@@ -223,7 +237,7 @@ def worker(args) -> dict:
         trainer.backend.render_backward = fast.render_backward
     start = args.start if args.start is not None else (
         trainer.t if trainer.t + args.warmup + args.steps <= trainer.cfg.iters
-        else trainer.cfg.iters - 1000)
+        else trainer.cfg.iters - FINISHED_RUN_BACK)
     trainer.t = start
     phases = Phases()
     _instrument(trainer, phases)
@@ -291,7 +305,8 @@ def _parse_source(text: str) -> dict:
     path, dtype, geometry = (rest.split(":") + [None, None])[:3]
     if not Path(path, "refgs").is_dir():
         raise SystemExit(f"--source {text}: {path}/refgs is not a refgs source tree")
-    if dtype not in (None, "", "float32", "float64") or geometry not in (None, "", "input", "float64"):
+    if (dtype not in (None, "", "float32", "float64")
+            or geometry not in (None, "", "input", "float64")):
         raise SystemExit(f"--source {text}: DTYPE float32|float64, GEOMETRY input|float64")
     return {"name": name, "path": str(Path(path).absolute()), "dtype": dtype or None,
             "geometry": geometry or None}
@@ -314,11 +329,18 @@ def run_worker(src: dict, run: Path, args, pairs: bool) -> dict:
     return json.loads(p.stdout.strip().splitlines()[-1])
 
 
-def table(run: Path, sources: list, results: dict, limits: list, pairs: float, lanes: float) -> str:
+def _row(cells: list) -> str:
+    return "| " + " | ".join(cells) + " |"
+
+
+def table(run: Path, sources: list, results: dict, limits: list, pairs: float,
+          lanes: dict) -> str:
+    """The markdown table of one run: medians over the repeats, ratios to the first source."""
     sgemm = statistics.median(l["sgemm_flops"] for l in limits)
     stream = statistics.median(l["stream_bytes"] for l in limits)
     t_lim = pairs * FLOPS_PER_PAIR / sgemm
     names = [s["name"] for s in sources]
+
     def ms(r, ph):              # phases this table does not name are "other"
         if ph != "other":
             return r["ms"].get(ph, 0.0)
@@ -331,42 +353,46 @@ def table(run: Path, sources: list, results: dict, limits: list, pairs: float, l
     lines = [f"### {run.name}: t = {r0['t'][0]}..{r0['t'][1]}, {r0['n_gaussians'][0]:,} Gaussians",
              "",
              f"pairs (blended pixel-Gaussian fragments) per iteration: {pairs / 1e6:.2f} M; "
-             f"lane pairs (16 x row-slot pairs evaluated): {lanes / 1e6:.2f} M; machine in this "
-             f"run: sgemm {sgemm / 1e9:.0f} GFLOP/s, stream {stream / 1e9:.1f} GB/s; compute "
-             f"limit of an iteration ({FLOPS_PER_PAIR} flop/pair): {1e3 * t_lim:.1f} ms",
+             f"machine in this run: sgemm {sgemm / 1e9:.0f} GFLOP/s, stream {stream / 1e9:.1f} "
+             f"GB/s; compute limit of an iteration ({FLOPS_PER_PAIR} flop/pair): "
+             f"{1e3 * t_lim:.1f} ms",
              "",
-             "| phase (ms / iteration) | " + " | ".join(
-                 f"{n} ({results[n][0]['dtype']}{', geom64' if results[n][0]['geometry'] == 'float64' else ''})"
-                 for n in names) + " | " + " | ".join(f"{n} / {first}" for n in names[1:]) + " |",
+             _row(["phase (ms / iteration)"] + [
+                 f"{n} ({results[n][0]['dtype']}"
+                 f"{', geom64' if results[n][0]['geometry'] == 'float64' else ''})" for n in names]
+                 + [f"{n} / {first}" for n in names[1:]]),
              "|---" * (2 * len(names)) + "|"]
     for ph in PHASES + ("total",):
         vals = {n: (sum(med[n].values()) if ph == "total" else med[n][ph]) for n in names}
         ratios = [f"{vals[n] / vals[first]:.2f}" if vals[first] > 0 else "-" for n in names[1:]]
-        lines.append(f"| {ph} | " + " | ".join(f"{vals[n]:.1f}" for n in names) + " | "
-                     + " | ".join(ratios) + " |")
+        lines.append(_row([ph] + [f"{vals[n]:.1f}" for n in names] + ratios))
     comp = {n: med[n]["composite fwd"] + med[n]["composite bwd"] for n in names}
     rows = [("wall per iteration (ms)", {n: f"{wall[n]:.1f}" for n in names}),
+            ("lanes evaluated per pair (forward)",
+             {n: f"{lanes[n] / pairs:.2f}" if lanes.get(n) else "-" for n in names}),
             ("pairs / s, compositing (M)", {n: f"{pairs / comp[n] / 1e3:.0f}" for n in names}),
             ("pairs / s, iteration (M)", {n: f"{pairs / wall[n] / 1e3:.0f}" for n in names}),
             ("compositing / compute limit", {n: f"{comp[n] / 1e3 / t_lim:.1f}x" for n in names}),
             ("iteration / compute limit", {n: f"{wall[n] / 1e3 / t_lim:.1f}x" for n in names})]
     for label, vals in rows:
-        lines.append(f"| {label} | " + " | ".join(vals[n] for n in names) + " |"
-                     + " |" * (len(names) - 1))
+        lines.append(_row([label] + [vals[n] for n in names] + [""] * (len(names) - 1)))
     return "\n".join(lines)
 
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("runs", type=Path, nargs="+")
-    ap.add_argument("--source", action="append", default=[])
-    ap.add_argument("--steps", type=int, default=10)
-    ap.add_argument("--warmup", type=int, default=2)
-    ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--from", dest="start", type=int, default=None)
+    ap.add_argument("runs", type=Path, nargs="+", help="run directories (their checkpoint.npz)")
+    ap.add_argument("--source", action="append", default=[],
+                    help="NAME=PATH[:DTYPE[:GEOMETRY]], a refgs checkout to time (repeatable; "
+                         "default: this one); the first is the ratios' base")
+    ap.add_argument("--steps", type=int, default=10, help="timed iterations per worker")
+    ap.add_argument("--warmup", type=int, default=2, help="untimed iterations first")
+    ap.add_argument("--repeats", type=int, default=3, help="workers per source and run")
+    ap.add_argument("--threads", type=int, default=2, help="NUMBA_NUM_THREADS of the workers")
+    ap.add_argument("--from", dest="start", type=int, default=None,
+                    help="iteration to start from (default: the checkpoint's, or iters - 500)")
     ap.add_argument("--method", default=None, help="profile this method instead of the run's")
-    ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--json", type=Path, default=None, help="write every measurement here")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--pairs", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--dtype", default=None, help=argparse.SUPPRESS)
@@ -385,14 +411,16 @@ def main(argv=None) -> None:
     for run in args.runs:
         run = run.absolute()
         results = {s["name"]: [] for s in sources}
-        limits, pairs, lanes = [], 0.0, 0.0
+        limits, pairs, lanes = [], 0.0, {}
         for r in range(args.repeats):
             limits.append(machine_limits())
             for s in sources:
-                res = run_worker(s, run, args, pairs=(r == 0 and s is sources[0]))
+                res = run_worker(s, run, args, pairs=(r == 0))
                 results[s["name"]].append(res)
                 if "pairs" in res:
-                    pairs, lanes = res["pairs"], res["lane_pairs"]
+                    lanes[s["name"]] = res["lane_pairs"]
+                    if s is sources[0]:
+                        pairs = res["pairs"]
                 print(f"# {run.name} repeat {r + 1}/{args.repeats} {s['name']}: "
                       f"{res['wall_ms']:.1f} ms/it", file=sys.stderr, flush=True)
         print(table(run, sources, results, limits, pairs, lanes) + "\n", flush=True)

@@ -4,6 +4,9 @@
                            [--seed 0] [--report DIR] [--timeout 300] [--memory-limit 8192]
     python -m oracle list-clauses
     python -m oracle replay DIR/failures/<check>.npz --backend module:object
+    python -m oracle check --backend NAME --diagnose    # + the named deviations that explain failures
+    python -m oracle diagnose --backend NAME            # the diagnosis alone (docs/spec/deviations.md)
+    python -m oracle matrix [--backend NAME ...]        # one column per backend (docs/conformance.md)
 
 A backend is any importable object with ``render(gaussians, camera, config)`` and the capability
 attributes ``profile`` and ``dtype`` (oracle/protocol.py; template: oracle/adapters/template.py).
@@ -17,7 +20,8 @@ Modules: protocol (backend, Case), clauses (spec headings), tolerances (the one 
 (near-tie analysis), compare (assertion helpers), strategies and hard_cases (cases), evaluate
 and checks (what is compared), isolation / worker / wire (the backend's process), runner,
 blame (which clauses a failure is evidence against), known (known differences), shrink, report,
-html and pictures (the page), calibrate, adapters/, meta/ (planted-bug and hostile backends).
+html and pictures (the page), calibrate, explain / diagnose / triage (which named deviations
+explain the failures), matrix, adapters/, meta/ (planted-bug, hostile and deviant backends).
 Importing the oracle needs the core dependencies only (numpy, scipy, hypothesis; matplotlib for
 the pictures).
 """

@@ -2,13 +2,15 @@
 
     python -m oracle check --backend module:object [--clause ID ...] [--max-examples N]
                            [--seed S] [--report DIR] [--no-shrink] [--timeout S]
-                           [--memory-limit MIB] [--known-differences FILE.toml]
+                           [--memory-limit MIB] [--known-differences FILE.toml] [--diagnose]
     python -m oracle list-clauses [--all]
     python -m oracle replay FILE.npz --backend module:object [--out DIR] [--timeout S]
     python -m oracle calibrate --backend module:object [--max-examples N] [--seed S]
     python -m oracle tolerances
+    python -m oracle diagnose --backend module:object [--report DIR] [--max-examples N]
+    python -m oracle matrix [--backend SPEC ...] [--report DIR] [--max-examples N]
 
-``check`` and ``replay`` run the backend in a worker process (oracle/isolation.py, ORC-11); the
+``check``, ``replay``, ``diagnose`` and ``matrix`` run the backend in a worker process (oracle/isolation.py, ORC-11); the
 module in ``--backend`` is imported there, with the current directory on sys.path, never in
 this process.  ``check`` exits 0 exactly when every check is pass, n/a, not provided or a
 declared known difference, 1 otherwise (fail, error, crash, timeout), 2 on a usage error (a
@@ -45,6 +47,9 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--no-shrink", action="store_true", help="report the first failing example as found")
     c.add_argument("--quiet", action="store_true", help="print only the summary line")
     _worker_options(c)
+    c.add_argument("--diagnose", action="store_true",
+                   help="diagnose the failing checks (oracle/triage.py): which named deviations "
+                        "explain them; writes diagnosis.json and shows it in index.html")
     c.add_argument("--known-differences", metavar="FILE",
                    help="TOML file of [[difference]] tables (check, clause, reason, link): failures "
                         "reported as 'known' (docs/oracle.md)")
@@ -61,12 +66,13 @@ def _parser() -> argparse.ArgumentParser:
     k.add_argument("--seed", type=int, default=0)
     sub.add_parser("tolerances", help="print the tolerance table (ORC-03) as Markdown")
     d = sub.add_parser("diagnose", help="which named deviations (docs/spec/deviations.md) explain "
-                                        "a backend's failures; the backend runs in this process")
+                                        "a backend's failures (the backend runs in a worker)")
     d.add_argument("--backend", required=True)
     d.add_argument("--report", default=None, help="folder for diagnosis.json and diagnosis.txt")
     d.add_argument("--max-examples", type=int, default=6, help="scenes per check (default 6)")
     d.add_argument("--seed", type=int, default=0, help="hypothesis seed (default 0)")
     d.add_argument("--no-checks", action="store_true", help="judge on the deviations' witness scenes only")
+    _worker_options(d)
     m = sub.add_parser("matrix", help="run several backends and tabulate their clause statuses "
                                       "(oracle/matrix.py, docs/conformance.md)")
     m.add_argument("--backend", action="append", default=[],
@@ -78,6 +84,8 @@ def _parser() -> argparse.ArgumentParser:
     m.add_argument("--report", default="oracle-matrix", help="folder for matrix.md, matrix.json and "
                                                              "one report folder per column")
     m.add_argument("--no-shrink", action="store_true", help="report the first failing example as found")
+    m.add_argument("--no-diagnose", action="store_true",
+                   help="do not diagnose the columns' failing checks (oracle/triage.py)")
     _worker_options(m)
     return p
 
@@ -121,8 +129,17 @@ def cmd_check(a) -> int:
             print(f"  {r.check.name:<28} {r.status:<13} ({r.examples} examples, {r.duration:.1f} s)",
                   file=sys.stderr, flush=True)
 
+    def diag_progress(name, status):
+        if not a.quiet:
+            print(f"  diagnosis: {name:<28} {status}", file=sys.stderr, flush=True)
+
     try:
-        result = run_isolated(a.backend, settings, progress=progress)
+        if a.diagnose:
+            from .triage import run_diagnosed
+            result = run_diagnosed(a.backend, settings, progress=progress,
+                                   diagnosis_progress=diag_progress)
+        else:
+            result = run_isolated(a.backend, settings, progress=progress)
     except ValueError as exc:                   # the backend cannot be loaded; a bad known difference
         return _fail(str(exc))
     json_path, txt_path, page = write_reports(result, a.report)

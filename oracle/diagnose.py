@@ -6,17 +6,20 @@
 
 One scene at a time: the backend's output against the float64 reference rendered with a set of
 deviations on (``RenderConfig.deviations``), judged by the checks' own comparisons and the
-tolerance table (oracle/evaluate.py, oracle/tolerances.py).  The runner is not used: the backend
-runs in this process, its outputs memoised per scene (only the reference changes while the search
-runs).  Steps: probes -- scenes of every render-level check (the first failing one also shrunk,
-oracle/shrink.py) and the witness scene of every deviation (refgs/deviations.py); greedy forward
-selection of a single deviation, else a pair, then pruning; verification on fresh scenes.  A
-failure no set explains is reported as unexplained, never guessed.
+tolerance table (oracle/explain.py, oracle/evaluate.py, oracle/tolerances.py).  The backend's
+outputs are memoised per scene (only the reference changes while the search runs); given a
+BackendInfo of an isolated worker (oracle/isolation.py ``open_backend``, what ``python -m oracle
+diagnose`` and ``check --diagnose`` use) the backend runs there, so a backend that crashes or
+hangs costs the scene it was on, not the diagnosis.  Steps: probes -- scenes of every
+render-level and stage check (the first failing one also shrunk, oracle/shrink.py), the failing
+scenes of a check run when given (``extra``), and the witness scene of every deviation
+(refgs/deviations.py; for a backend whose render cannot run here, judged through its stage
+functions); greedy forward selection of a single deviation, else a pair, then pruning;
+verification on fresh scenes.  A failure no set explains is reported as unexplained, never
+guessed.
 """
 from __future__ import annotations
 
-import dataclasses
-import hashlib
 import itertools
 import sys
 import time
@@ -32,175 +35,29 @@ import refgs
 from refgs.deviations import DEVIATIONS, apply_deviations, incompatible, label
 from refgs.io.atomic import atomic_write_json, atomic_write_text
 
-from . import evaluate as ev
 from .checks import CHECKS, Check
 from .compare import problem
 from .evaluate import Context, Verdict
-from .protocol import BackendError, BackendInfo, Case, describe_backend, load_backend
+from .explain import (INVARIANT_WAIVERS, Probe, backend_info, explains, fingerprint, judge, outcome,
+                      plain_context, reference_fingerprint, with_deviations)
+from .protocol import BackendError, BackendInfo, Case
 from .shrink import shrink
 
 #: check kinds judged by comparison with the reference, hence explainable by a deviation
-DIAGNOSED_KINDS = ("forward", "backward", "hard")
+DIAGNOSED_KINDS = ("forward", "backward", "hard", "stage")
 #: scenes drawn per check in the first pass and in the verification (times Check.examples)
 DEFAULT_EXAMPLES = 6
 #: failing scenes of one check kept as probes (the first is also shrunk)
 KEEP_FAILING = 1
 #: check evaluations one shrink may spend
 SHRINK_BUDGET = 20
-#: scenes drawn per passing check to look for new failures in the verification
+#: scenes drawn per passing check to look for new failures in the verification (and per check
+#: outside ``focus`` in the first pass)
 PASSING_SAMPLE = 2
 #: at most this many single deviations (those that move the unexplained probes most) are paired
 MAX_PAIRED = 12
-#: a check's invariant (a property of the reference model, not a comparison with it) is waived
-#: only under the deviations that change that property by definition
-INVARIANT_WAIVERS = {"final_T": {"blend_at_cutoff", "stop_off"}, "background": {"no_background"}}
-#: a worst error/tolerance ratio above this counts as this (structural failures are infinite)
-RATIO_CAP = 1e12
-
-
-class _Plain:
-    """The backend as the diagnosis calls it: a config's deviations belong to the reference, so
-    they are stripped before the backend sees the config; outputs are memoised per scene (an
-    exception is memoised too and re-raised to every caller, as the backend would raise it)."""
-
-    def __init__(self, obj):
-        self._obj, self._memo = obj, {}
-
-    def _call(self, key, pins, fn):
-        if key not in self._memo:
-            try:
-                self._memo[key] = ((True, fn()), pins)        # pins keep the ids in the key alive
-            except Exception as exc:
-                self._memo[key] = ((False, exc), pins)
-        (ok, val), _ = self._memo[key]
-        if not ok:
-            raise val
-        return val
-
-    @staticmethod
-    def _key(gaussians, camera, config) -> tuple:
-        return ("render", id(gaussians), id(camera), str(config.profile), config.sh_degree,
-                tuple(config.background), bool(config.antialiased), id(config.opacity_scale))
-
-    def remember(self, scene: Case, output) -> None:
-        """Use ``output`` as the backend's render output for ``scene``."""
-        self._memo[self._key(scene.gaussians, scene.camera, scene.config)] = ((True, output), scene)
-
-    def render(self, gaussians, camera, config):
-        plain = dataclasses.replace(config, deviations=frozenset())
-        return self._call(self._key(gaussians, camera, config), (gaussians, camera, config),
-                          lambda: self._obj.render(gaussians, camera, plain))
-
-    def render_backward(self, out, v_image, **cotangents):
-        h = hashlib.sha1(np.ascontiguousarray(v_image).tobytes())
-        for k in sorted(cotangents):
-            h.update(k.encode() + np.ascontiguousarray(cotangents[k]).tobytes())
-        return self._call(("backward", id(out), h.hexdigest()), out,
-                          lambda: self._obj.render_backward(out, v_image, **cotangents))
-
-
-def _info(backend) -> BackendInfo:
-    if isinstance(backend, BackendInfo):
-        return backend
-    if isinstance(backend, str):
-        return load_backend(backend)
-    return describe_backend(backend, getattr(backend, "name", "") or type(backend).__name__)
-
-
-def plain_context(backend) -> Context:
-    """A Context whose backend ignores ``RenderConfig.deviations`` and memoises its outputs;
-    stage functions are left out (their checks are not diagnosed)."""
-    info = _info(backend)
-    return Context(dataclasses.replace(info, obj=_Plain(info.obj), stages={}))
-
-
-def with_deviations(scene: Case, deviations) -> Case:
-    """``scene`` whose reference renders with ``deviations`` on (the same Gaussians and camera)."""
-    cfg = dataclasses.replace(scene.config, deviations=frozenset(deviations))
-    return Case(scene.gaussians, scene.camera, cfg, scene.seed, scene.label)
-
-
-@dataclass(eq=False)
-class Probe:
-    """One scene the search judges: from a check (``check`` set) or a deviation's witness."""
-
-    source: str                      # "check", "shrunk", "witness"
-    name: str                        # the check's or the deviation's name
-    scene: Case                     # rounded to the backend's dtype
-    check: Check | None = None
-    backward: bool = False           # witnesses: judged through render_backward
-    rounding: str = "float64"        # the dtype the scene was rounded to
-
-
-def judge(ctx: Context, probe: Probe, deviations) -> Verdict:
-    """The backend against the reference under ``deviations`` on the probe's scene: the check's
-    own evaluation (its invariants waived only under the deviations of INVARIANT_WAIVERS), or for
-    a witness the render outputs (forward) or gradients for image, alpha and depth cotangents."""
-    scene = with_deviations(probe.scene, deviations)
-    try:
-        with np.errstate(all="ignore"):        # e.g. the tie bands of an unclamped frustum
-            if probe.check is not None:
-                v = probe.check.evaluate(ctx, scene)
-            elif probe.backward:
-                v = ev.backward(ctx, scene, kinds=("image", "alpha", "depth"))
-            else:
-                v = ev.forward(ctx, scene)
-    except Exception as exc:          # the reference under this set cannot render the scene
-        return Verdict([problem("reference", f"the reference with {sorted(deviations)} raised "
-                                             f"{type(exc).__name__}: {exc}")])
-    waived = {out for out, devs in INVARIANT_WAIVERS.items() if devs & set(deviations)}
-    v.comparisons = [c for c in v.comparisons if c.output not in waived]
-    return v
-
-
-#: the reference outputs that identify a probe's judgement
-_FINGERPRINT_OUTPUTS = ("image", "alpha", "depth", "n_contrib", "radii", "visible", "means2d",
-                        "depths", "conics", "colors", "opacities")
-
-
-def reference_fingerprint(probe: Probe, deviations) -> str:
-    """A digest of the reference's outputs on the probe under ``deviations`` and, for a probe
-    judged through gradients, of its gradients for one fixed random cotangent."""
-    kind = probe.check.kind if probe.check is not None else ("backward" if probe.backward else "forward")
-    if probe.source != "witness":
-        return _fingerprint(probe.scene, frozenset(deviations), kind)
-    # a witness scene is a function of (deviation, profile, rounding): the same in every diagnosis
-    key = (probe.name, str(probe.scene.config.profile), probe.scene.label, kind,
-           frozenset(deviations), probe.rounding)
-    if key not in _WITNESS_FINGERPRINTS:
-        _WITNESS_FINGERPRINTS[key] = _fingerprint(probe.scene, frozenset(deviations), kind)
-    return _WITNESS_FINGERPRINTS[key]
-
-
-#: reference fingerprints of witness probes, shared by every diagnosis in this process
-_WITNESS_FINGERPRINTS: dict = {}
-
-
-def _fingerprint(case: Case, deviations: frozenset, kind: str) -> str:
-    scene = with_deviations(case, deviations)
-    h = hashlib.sha1()
-    try:
-        with np.errstate(all="ignore"):
-            ref = ev.reference(scene)
-            for k in _FINGERPRINT_OUTPUTS:
-                h.update(np.ascontiguousarray(getattr(ref, k)).tobytes())
-            if kind in ("backward", "hard") and len(ref.gaussians):
-                rng = np.random.default_rng(0)
-                g = refgs.render_backward(ref, rng.normal(size=ref.image.shape),
-                                          rng.normal(size=ref.alpha.shape), rng.normal(size=ref.alpha.shape))
-                for v in g.to_dict().values():
-                    h.update(np.ascontiguousarray(v).tobytes())
-    except Exception as exc:
-        h.update(f"{type(exc).__name__}: {exc}".encode())
-    return h.hexdigest()
-
-
-def _outcome(v: Verdict) -> tuple[str, float]:
-    if v.inconclusive:
-        return "inconclusive", 0.0
-    w = v.worst
-    ratio = 0.0 if w is None else float(min(w.ratio, RATIO_CAP))
-    return ("agree" if v.ok else "differ"), ratio
+#: the stage of the catalogue (Deviation.stage) each stage function computes
+STAGE_OF_FUNCTION = {"covariance": "COV", "projection": "PRJ", "sh": "SH", "composite": "RAS"}
 
 
 @dataclass(frozen=True)
@@ -232,7 +89,7 @@ class Search:
                   frozenset(o for o, devs in INVARIANT_WAIVERS.items() if devs & deviations))
             if fp not in self.cache:
                 self.evaluations += 1
-                self.cache[fp] = _outcome(judge(self.ctx, probes[i], deviations))
+                self.cache[fp] = outcome(judge(self.ctx, probes[i], deviations))
             self.cache[key] = self.cache[fp]
         return self.cache[key]
 
@@ -340,23 +197,34 @@ def _draw(check: Check, ctx: Context, n: int, seed: int) -> list[Case]:
     return [s.rounded(ctx.dtype) for s in scenes[:max(1, n)]]
 
 
+def _stage_checks(info: BackendInfo) -> list[Check]:
+    """The stage checks of the stage functions the backend has."""
+    return [c for c in CHECKS if c.kind == "stage" and c.name[len("stage_"):] in info.stages]
+
+
 def candidates_for(info: BackendInfo) -> list[str]:
-    """Observable deviations that change the backend's profile and that it could show."""
+    """Observable deviations that change the backend's profile and that it could show: with a
+    render that runs here, any; otherwise those of the stages its stage functions compute."""
     base = refgs.get_profile(info.profile)
+    stages = None if info.unavailable_reason is None else {
+        STAGE_OF_FUNCTION[c.name[len("stage_"):]] for c in _stage_checks(info)}
     return [n for n, d in DEVIATIONS.items() if d.observable and (info.has_backward or not d.backward_only)
-            and apply_deviations(base, {n}) != base]
+            and (stages is None or d.stage in stages) and apply_deviations(base, {n}) != base]
 
 
 def _shows(scene: Case, name: str, backward: bool) -> bool:
     """Does deviation ``name`` change the reference on ``scene`` (its witness shows it)?"""
     kind = "backward" if backward else "forward"
-    return _fingerprint(scene, frozenset(), kind) != _fingerprint(scene, frozenset({name}), kind)
+    return fingerprint(scene, frozenset(), kind) != fingerprint(scene, frozenset({name}), kind)
 
 
 def witness_probes(info: BackendInfo, names) -> list[Probe]:
     """The witness scene of each deviation in ``names`` for the backend's profile, kept where it
-    shows its deviation under that profile and lies inside the backend's capabilities."""
+    shows its deviation under that profile and lies inside the backend's capabilities; judged
+    through render (or render_backward), or, when render cannot run here, through each stage
+    check of the deviation's stage."""
     out = []
+    stage_checks = _stage_checks(info)
     for name in names:
         w = DEVIATIONS[name].witness
         if (w.backward and not info.has_backward) or (w.sh1 is not None and info.max_sh_degree < 1) \
@@ -365,19 +233,27 @@ def witness_probes(info: BackendInfo, names) -> list[Probe]:
             continue                                 # outside the backend's declared capabilities
         g, cam, cfg = w.build(info.profile)
         scene = Case(g, cam, cfg, seed=1, label=f"witness:{name}")
-        if _shows(scene, name, w.backward):
-            out.append(Probe("witness", name, scene.rounded(info.dtype), backward=w.backward,
-                             rounding=info.dtype))
+        if not _shows(scene, name, w.backward):
+            continue
+        rounded = scene.rounded(info.dtype)
+        if info.unavailable_reason is None:
+            out.append(Probe("witness", name, rounded, backward=w.backward, rounding=info.dtype))
+        else:
+            out += [Probe("witness", name, rounded, c, rounding=info.dtype) for c in stage_checks
+                    if STAGE_OF_FUNCTION[c.name[len("stage_"):]] == DEVIATIONS[name].stage]
     return out
 
 
 def check_probes(ctx: Context, checks, examples: int, seed: int, shrink_failures: bool = True,
-                 progress=None):
+                 progress=None, focus=None):
     """Run each diagnosed check on its drawn scenes (no deviation): (failing probes, passing
-    probes, {check name: first failure message}, passing check names)."""
+    probes, {check name: first failure message}, passing check names).  ``focus``: names of the
+    checks whose failures are to be explained (``examples`` scenes each; the others
+    PASSING_SAMPLE), None for all."""
     failing, passing, messages, ok_checks = [], [], {}, []
     for check in checks:
-        n = max(1, int(round(examples * check.examples)))
+        n = PASSING_SAMPLE if focus is not None and check.name not in focus else \
+            max(1, int(round(examples * check.examples)))
         bad, good = [], []
         for scene in _draw(check, ctx, n, seed):
             p = Probe("check", check.name, scene, check)
@@ -430,25 +306,37 @@ def verify(ctx: Context, deviations, failing_checks, passing_checks, examples: i
 
 def diagnose(backend, *, examples: int = DEFAULT_EXAMPLES, seed: int = 0, checks=None,
              witnesses: bool = True, shrink_failures: bool = True, pairs: bool = True,
-             verify_set: bool = True, progress=None) -> dict:
+             verify_set: bool = True, progress=None, focus=None, extra=(),
+             timeout: float | None = None) -> dict:
     """Find the smallest set of catalogued deviations under which the reference matches the
-    backend (module docstring).  ``backend``: a ``module:object`` spec, a BackendInfo or a
-    backend object.  ``checks``: Check objects or names (default: every check; those not of a
-    diagnosed kind are run and, if they fail, listed under ``not_diagnosed``).  Returns a
-    JSON-ready dict; ``summary`` is the one-line verdict."""
+    backend (module docstring).  ``backend``: a ``module:object`` spec (loaded in this process),
+    a BackendInfo (an isolated worker's, or in this process) or a backend object.  ``checks``:
+    Check objects or names (default: every check; those not of a diagnosed kind are run and, if
+    they fail, listed under ``not_diagnosed``).  ``focus``: the checks whose failures matter
+    (oracle/triage.py passes a run's failing checks; the others get PASSING_SAMPLE scenes);
+    ``extra``: (check name, Case) failing scenes to use as probes; ``timeout``: seconds of
+    backend time per call of an isolated backend.  Returns a JSON-ready dict; ``summary`` is the
+    one-line verdict."""
     t0 = time.perf_counter()
-    info = _info(backend)
-    ctx = plain_context(info)
+    info = backend_info(backend)
+    ctx = plain_context(info, timeout)
     by = {c.name: c for c in CHECKS}
     chosen = list(CHECKS) if checks is None else [by[c] if isinstance(c, str) else c for c in checks]
     runnable = [c for c in chosen if c.kind in DIAGNOSED_KINDS and c.unavailable(ctx) is None]
     failing, passing, messages, ok_checks = check_probes(ctx, runnable, examples, seed,
-                                                         shrink_failures, progress)
-    not_diagnosed = _not_diagnosed(info, [c for c in chosen if c.kind not in DIAGNOSED_KINDS],
+                                                         shrink_failures, progress, focus)
+    for name, case in extra:
+        p = Probe("run", name, case.rounded(ctx.dtype), by[name])
+        v = judge(ctx, p, ())
+        if not v.inconclusive and not v.ok:
+            failing.append(p)
+            messages.setdefault(name, v.message())
+            ok_checks = [c for c in ok_checks if c != name]
+    not_diagnosed = _not_diagnosed(ctx, [c for c in chosen if c.kind not in DIAGNOSED_KINDS],
                                    examples, seed)
     cands = candidates_for(info)
     wit = witness_probes(info, cands) if witnesses else []
-    status = [_outcome(judge(ctx, p, ()))[0] for p in wit]        # inconclusive ones are left out
+    status = [outcome(judge(ctx, p, ()))[0] for p in wit]        # inconclusive ones are left out
     w_fail = [p for p, st in zip(wit, status) if st == "differ"]
     w_pass = [p for p, st in zip(wit, status) if st == "agree"]
     # witnesses first (small scenes that tell deviations apart), then every probe from there
@@ -456,8 +344,10 @@ def diagnose(backend, *, examples: int = DEFAULT_EXAMPLES, seed: int = 0, checks
     search = Search(ctx, failing + w_fail, passing + w_pass, cands)
     found = search.run(pairs=pairs, start=start) if search.failing else frozenset()
     ver = verify(ctx, found, sorted(messages), ok_checks, examples, seed) if verify_set else None
-    w_ok = [p.name for k, p in enumerate(w_fail)
-            if search.outcome(len(failing) + k, search.failing, found)[0] == "agree"]
+    w_ok = sorted({p.name for k, p in enumerate(w_fail)
+                   if search.outcome(len(failing) + k, search.failing, found)[0] == "agree"}
+                  - {p.name for k, p in enumerate(w_fail)
+                     if search.outcome(len(failing) + k, search.failing, found)[0] != "agree"})
     result = {
         "backend": {"spec": info.spec, "name": info.name, "version": info.version,
                     "profile": info.profile, "dtype": info.dtype},
@@ -467,23 +357,23 @@ def diagnose(backend, *, examples: int = DEFAULT_EXAMPLES, seed: int = 0, checks
                     for n in DEVIATIONS if n in found],
         "failing_checks": sorted(messages), "failure_messages": messages,
         "passing_checks": ok_checks, "not_diagnosed": not_diagnosed,
-        "witnesses": {"differing": [p.name for p in w_fail], "agreeing": [p.name for p in w_pass],
-                      "explained": w_ok},
+        "witnesses": {"differing": sorted({p.name for p in w_fail}),
+                      "agreeing": sorted({p.name for p in w_pass}), "explained": w_ok},
         "search": {"trace": search.trace, "evaluations": search.evaluations, "candidates": cands,
                    "probes_failing": len(search.failing), "probes_agreeing": len(search.passing)},
         "verification": ver,
         "settings": {"examples": examples, "seed": seed, "witnesses": witnesses, "pairs": pairs,
-                     "shrink": shrink_failures, "backend_in_process": True},
+                     "shrink": shrink_failures, "backend_in_process": info.session is None,
+                     "render_available": info.unavailable_reason is None},
         "duration_s": round(time.perf_counter() - t0, 2),
     }
     result["summary"] = summary_line(result)
     return result
 
 
-def _not_diagnosed(info: BackendInfo, checks, examples: int, seed: int) -> list:
-    """Checks of other kinds (stage functions, invalid input, reference-only) that fail: they
-    are reported, not explained (a stage check's expected value ignores the deviation options)."""
-    ctx = Context(info)
+def _not_diagnosed(ctx: Context, checks, examples: int, seed: int) -> list:
+    """Checks of other kinds (invalid input, reference-only) that fail: they are reported, not
+    explained (no deviation makes a backend accept invalid input)."""
     out = []
     for check in checks:
         if check.kind == "reference" or check.unavailable(ctx) is not None:
@@ -519,8 +409,9 @@ def summary_line(result: dict) -> str:
 def summary_text(result: dict) -> str:
     """The diagnosis as a few lines of text (what ``python -m oracle diagnose`` prints)."""
     b = result["backend"]
+    where = "in-process" if result["settings"].get("backend_in_process", True) else "in a worker"
     lines = [f"diagnosis of {b['spec'] or b['name']} ({b['profile']}, {b['dtype']}); "
-             f"backend run in-process, {result['duration_s']} s", result["summary"]]
+             f"backend run {where}, {result['duration_s']} s", result["summary"]]
     for d in result["details"]:
         lines.append(f"  {d['name']:<26} {d['stage']} {d['clause']:<7} {d['label']}")
     ver = result.get("verification") or {}
@@ -536,53 +427,26 @@ def summary_text(result: dict) -> str:
     return "\n".join(lines)
 
 
-def explains(deviations, case: Case, backend_output=None, *, backend=None, check: Check | None = None) -> bool:
-    """True iff the reference with ``deviations`` on agrees with the backend on ``case``, judged
-    as :func:`judge` does (``check``'s evaluation, or the render outputs when None).
-
-    ``backend_output``: the backend's render output for the case (then the case's profile and
-    the output's dtype are the backend's); ``backend`` (spec, BackendInfo or object): needed for
-    gradients.  A shrinker keeps a failure's deviation signature by accepting a smaller case
-    only while ``not explains((), c, out) and explains(found, c, out)``."""
-    if backend is None:
-        if backend_output is None:
-            raise ValueError("explains: expected backend_output or backend, got neither")
-        backend = _Recorded(backend_output, str(case.config.profile))
-    ctx = plain_context(backend)
-    scene = case.rounded(ctx.dtype)
-    if backend_output is not None:
-        ctx.backend.obj.remember(scene, backend_output)
-    probe = Probe("check" if check else "case", check.name if check else "render", scene, check)
-    return _outcome(judge(ctx, probe, frozenset(deviations)))[0] == "agree"
-
-
-class _Recorded:
-    """A backend that only knows one render output (what :func:`explains` judges)."""
-
-    has_backward = False
-
-    def __init__(self, output, profile: str):
-        self.output, self.profile, self.name = output, profile, "recorded output"
-        self.dtype = str(np.asarray(output["image"] if isinstance(output, dict) else output.image).dtype)
-
-    def render(self, gaussians, camera, config):
-        return self.output
-
-
 def run_cli(a) -> int:
-    """``python -m oracle diagnose`` (oracle/__main__.py): print the diagnosis, write
-    ``diagnosis.json`` and ``diagnosis.txt`` to ``--report`` if given.  Exit 0 when every
-    failing check and differing witness is explained with no new failure, 1 otherwise, 2 on a
-    usage error."""
+    """``python -m oracle diagnose`` (oracle/__main__.py): the backend in a worker process
+    (oracle/isolation.py); print the diagnosis, write ``diagnosis.json`` and ``diagnosis.txt`` to
+    ``--report`` if given.  Exit 0 when every failing check and differing witness is explained
+    with no new failure, 1 otherwise, 2 on a usage error."""
+    from .isolation import open_backend
+
     try:
         if a.max_examples < 1:
             raise BackendError(f"--max-examples: expected a positive integer, got {a.max_examples}")
-        info = load_backend(a.backend)
+        info = open_backend(a.backend, a.memory_limit)
     except BackendError as exc:
         print(f"oracle: error: {exc}", file=sys.stderr)
         return 2
-    result = diagnose(info, examples=a.max_examples, seed=a.seed, checks=[] if a.no_checks else None,
-                      progress=lambda n, st: print(f"  {n:<28} {st}", file=sys.stderr, flush=True))
+    try:
+        result = diagnose(info, examples=a.max_examples, seed=a.seed,
+                          checks=[] if a.no_checks else None, timeout=a.timeout or None,
+                          progress=lambda n, st: print(f"  {n:<28} {st}", file=sys.stderr, flush=True))
+    finally:
+        info.session.close()
     print(summary_text(result))
     if a.report:
         atomic_write_json(Path(a.report) / "diagnosis.json", result)

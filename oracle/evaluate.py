@@ -370,7 +370,12 @@ def cancellation(ref, scene: Case, dtype: str, mask, kinds, ref_g, n_live) -> di
 
 
 def stage(ctx: Context, scene: Case, name: str) -> Verdict:
-    """One optional stage function against refgs' stage, on inputs taken from the reference."""
+    """One optional stage function against refgs' stage, on inputs taken from the reference.
+
+    The expected values honour the scene's profile and ``RenderConfig.deviations`` (DEV-01) in
+    every stage, as :func:`reference` does; the backend's stage function gets the config as it is
+    (the diagnosis, oracle/diagnose.py, strips the deviations before the backend sees it).
+    """
     be = ctx.backend
     fn = be.stages[name]
     g, cam, cfg = scene.gaussians, scene.camera, scene.config
@@ -386,7 +391,7 @@ def stage(ctx: Context, scene: Case, name: str) -> Verdict:
         return v
     try:
         if name == "covariance":
-            exp = refgs.covariance_3d(g.quats, g.log_scales)["cov3d"]
+            exp = refgs.covariance_3d(g.quats, g.log_scales, profile)["cov3d"]
             got = fn(g.quats, g.log_scales)
             outs = {"cov3d": (_value(got), exp, None)}
         elif name == "projection":
@@ -402,7 +407,7 @@ def stage(ctx: Context, scene: Case, name: str) -> Verdict:
         elif name == "sh":
             deg = cfg.active_sh_degree(g.sh.shape[1])
             campos = rnd(cam.center)
-            exp = refgs.eval_sh_colors(g.means, g.sh, campos, deg)["colors"]
+            exp = refgs.eval_sh_colors(g.means, g.sh, campos, deg, profile)["colors"]
             got = fn(g.means, g.sh, campos, deg)
             outs = {"colors": (_value(got), exp, None)}
         elif name == "composite":

@@ -42,6 +42,7 @@ pre{background:#f0f0f0;padding:.5em;overflow-x:auto;font-size:.85em;white-space:
 figure{display:inline-block;margin:.5em 1em .5em 0} figcaption{font-size:.8em;color:#555;max-width:40em}
 img{max-width:100%;border:1px solid #ccc;background:#fff}
 .muted{color:#666;font-size:.9em} .msg{font-family:monospace;font-size:.9em;white-space:pre-wrap}
+.diag{border-left:.3em solid #1565c0;background:#e3f2fd;padding:.4em .8em}
 """
 
 
@@ -103,7 +104,7 @@ def _case_html(failure: dict) -> str:
     shrink = failure.get("shrink") or {}
     shrunk = ""
     if shrink:
-        (n0, n1), (s0, s1) = shrink["gaussians"], shrink["image"]
+        (n0, _), (s0, _) = shrink["gaussians"], shrink["image"]
         shrunk = (f" Shrunk from N={n0}, {s0[0]}x{s0[1]} px in {shrink['evaluations']} evaluations"
                   f" ({shrink.get('rejected_mechanism_changes', 0)} smaller cases rejected because the "
                   f"failure changed mechanism){'; ' + shrink['stopped'] if shrink.get('stopped') else ''}.")
@@ -125,6 +126,11 @@ def _failure_html(r, run, folder: Path) -> str:
              f"<h3>{badge(r.status)} <code>{escape(r.check.name)}</code> "
              f"<span class=\"muted\">({escape(r.check.kind)}; cites {escape(', '.join(r.check.clauses))})</span></h3>",
              f"<p class=\"muted\">{escape(r.check.doc)}</p>", f"<p class=\"msg\">{escape(f['message'])}</p>"]
+    sig = f.get("signature")
+    if sig:
+        parts.append(f'<p class="diag">Behaves like the reference with <b>{escape(sig["label"])}</b> '
+                     "(the diagnosis, docs/spec/deviations.md DEV-02; the minimal case below was shrunk "
+                     "keeping this deviation signature).</p>")
     if r.known:
         parts.append("<p>Known difference: " + "; ".join(
             escape(e["reason"]) + (f' (<a href="{escape(e["link"])}">{escape(e["link"])}</a>)' if e.get("link") else "")
@@ -135,7 +141,8 @@ def _failure_html(r, run, folder: Path) -> str:
         parts.append(f"<p>Blamed clauses (ORC-12): none -- {escape(blame['unattributed'])}.</p>")
     if spared:
         parts.append(f"<details><summary>Clauses this failure is not evidence against</summary><ul>{spared}</ul></details>")
-    note = f["message"] if r.status in ("crash", "timeout") else ""
+    note = {"crash": "the worker died on this case (see the message)",
+            "timeout": "the backend ran out of time on this case"}.get(r.status, "")
     try:
         pics = draw(r.evidence, folder / PICTURES, r.check.name, note=note)
     except Exception as exc:                         # a picture must never cost the report
@@ -146,7 +153,8 @@ def _failure_html(r, run, folder: Path) -> str:
         parts.append("<h4>The smallest failing case, drawn</h4>")
         parts += [f'<figure><img src="{PICTURES}/{escape(name)}" alt="{escape(r.check.name)}: {escape(cap)}">'
                   f"<figcaption>{escape(cap)}</figcaption></figure>" for name, cap in pics]
-    parts += ["<h4>Smallest failing case</h4>", _case_html(f)]
+    parts += ["<h4>" + ("The case it was on" if r.status in ("crash", "timeout") else "Smallest failing case")
+              + "</h4>", _case_html(f)]
     if f.get("replay"):
         parts.append(f"<p>Replay (prints the comparison and redraws these pictures):</p><pre>{escape(f['replay'])}</pre>")
     if r.status in ("fail", "error", "known"):
@@ -156,6 +164,35 @@ def _failure_html(r, run, folder: Path) -> str:
         parts += ["<h4>Tolerance applied</h4>", _tolerance_html(r.check, bad, run.backend.dtype)]
     parts.append("</article>")
     return "\n".join(parts)
+
+
+def diagnosis_html(dg: dict) -> str:
+    """The diagnosis line at the top of the page (oracle/triage.py): which deviations explain
+    the failing checks, the unexplained ones, new failures."""
+    if not dg.get("available", True):
+        return f'<p class="diag">{escape(dg["summary"])}</p>'
+    parts = [f'<div class="diag"><p><b>Diagnosis</b> (docs/spec/deviations.md DEV-02): '
+             f'{escape(dg["summary"])}.</p>']
+    if dg.get("details"):
+        parts.append("<ul>" + "".join(f"<li><code>{escape(d['name'])}</code> ({escape(d['clause'])}): "
+                                      f"{escape(d['label'])} -- {escape(d['who'])}</li>"
+                                      for d in dg["details"]) + "</ul>")
+    if dg.get("explained"):
+        parts.append("<p>Explained: " + ", ".join(f'<a href="#check-{escape(c)}">{escape(c)}</a>'
+                                                  for c in dg["explained"]) + "</p>")
+    if dg.get("unexplained"):
+        parts.append("<p>Unexplained (a defect, or a convention the catalogue does not name):</p><ul>"
+                     + "".join(f'<li><a href="#check-{escape(u["check"])}">{escape(u["check"])}</a> '
+                               f'({escape(u["status"])}): <span class="msg">{escape(u["message"][:300])}</span></li>'
+                               for u in dg["unexplained"]) + "</ul>")
+    if dg.get("new_failures"):
+        parts.append("<p>New failures under the set:</p><ul>" + "".join(
+            f"<li>{escape(u['check'])}: {escape(u['message'][:300])}</li>" for u in dg["new_failures"]) + "</ul>")
+    if dg.get("not_diagnosed"):
+        parts.append("<p>Not diagnosed: " + ", ".join(f"{escape(u['check'])} ({escape(u['status'])})"
+                                                      for u in dg["not_diagnosed"]) + "</p>")
+    parts.append(f'<p class="muted">Full result: diagnosis.json ({dg.get("duration_s", 0):.1f} s).</p></div>')
+    return "".join(parts)
 
 
 def render_page(run, folder) -> str:
@@ -181,6 +218,8 @@ def render_page(run, folder) -> str:
             "<p>" + " ".join(f"{badge(s)}&nbsp;{checks[s]}" for s in STATUS_ORDER if checks[s])
             + f" of {len(run.results)} checks; {run.settings.max_examples} examples per check, seed "
               f"{run.settings.seed}, {run.duration:.1f} s.</p>"]
+    if run.diagnosis is not None:
+        body.append(diagnosis_html(run.diagnosis))
     if failing:
         body.append("<h2>Checks that did not pass</h2>")
         body += [_failure_html(r, run, folder) for r in failing]
@@ -196,7 +235,7 @@ def render_page(run, folder) -> str:
                            if c["status"] not in OK + ("pass",) or any(r.check.name == c["name"] for r in failing + known)
                            else escape(c["name"])) + ("" if c["status"] == row["status"] else f" [{escape(c['status'])}]")
                           for c in row["checks"])
-        rows.append(f"<tr><td>{escape(cid)}</td><td>{escape(row['title'])}</td><td>{badge(row['status'])}"
+        rows.append(f"<tr id=\"clause-{escape(cid)}\"><td>{escape(cid)}</td><td>{escape(row['title'])}</td><td>{badge(row['status'])}"
                     f"{' (reference only)' if row['reference_only'] else ''}</td><td>{ws}</td><td>{names}</td></tr>")
     body += ["<h2>Clauses</h2>", "<p class=\"muted\">Status: the worst of the checks citing the clause; a "
              "failure counts only against the clauses it is evidence against (ORC-12). Worst/tol: the "

@@ -66,6 +66,11 @@ class RemoteError(Exception):
         self.type_name, self.where = type_name, where
 
 
+class OutputReleased(RuntimeError):
+    """render_backward named a render output the worker no longer holds (it keeps the last
+    ``worker.KEEP_OUTPUTS``): render the scene again for a fresh one."""
+
+
 class RemoteValueError(RemoteError, ValueError):
     """The backend raised a ValueError (or a subclass): invalid input rejected (API-03)."""
 
@@ -144,7 +149,9 @@ class Session:
         try:
             reply = self._receive(self.start_timeout, "loading the backend")
         except WorkerLost as lost:
-            raise BackendError(f"--backend {self.spec}: {lost.reason} while loading the backend") from None
+            why = (f"the backend did not load within {self.start_timeout:g} s; the worker was killed"
+                   if lost.kind == "timeout" else lost.reason)
+            raise BackendError(f"--backend {self.spec}: {why}") from None
         if "load_error" in reply:
             self._stop()
             raise BackendError(reply["load_error"])
@@ -288,6 +295,8 @@ class RemoteBackend:
         cot.update({k: v for k, v in (("v_alpha", v_alpha), ("v_depth", v_depth)) if v is not None})
         reply = self.session.call("render_backward", "render_backward", handle=out.handle,
                                   cotangents=cot)
+        if "released" in reply:
+            raise OutputReleased(f"render output {out.handle} is no longer held by the worker")
         _raise_remote(reply)
         return _fields(reply)
 

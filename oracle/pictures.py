@@ -19,6 +19,7 @@ Files are written atomically next to the page.
 from __future__ import annotations
 
 import io
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +32,8 @@ from .protocol import get_field
 BAD_COLOUR = "magenta"
 #: figure width per panel and height per row (inches) and resolution (dots per inch)
 PANEL_IN, ROW_IN, DPI = 2.6, 2.2, 80
+#: characters per line of a panel's text
+PANEL_CHARS = 30
 #: smallest row size a relative per-Gaussian error is taken against
 TINY = 1e-30
 #: a reference whose largest value is below this is drawn brightened to its largest value
@@ -57,7 +60,8 @@ def _array(obj, name):
 
 
 def _panel_text(ax, text: str) -> None:
-    ax.text(0.5, 0.5, text, ha="center", va="center", wrap=True, fontsize=7, transform=ax.transAxes)
+    ax.text(0.5, 0.5, textwrap.fill(text, PANEL_CHARS), ha="center", va="center", fontsize=7,
+            transform=ax.transAxes)
     ax.set_xticks([])
     ax.set_yticks([])
 

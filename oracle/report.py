@@ -148,6 +148,9 @@ def to_json(run) -> dict:
         "check_summary": {s: sum(1 for r in run.results if r.status == s) for s in STATUS_ORDER},
         "clauses": {cid: {**row, "worst_ratio": ratio(row["worst_ratio"])} for cid, row in table.items()},
         "checks": [r.to_json() for r in run.results],
+        "diagnosis": None if run.diagnosis is None else {
+            k: run.diagnosis.get(k) for k in ("available", "summary", "deviations", "explained",
+                                              "unexplained", "signatures")},
     }
 
 
@@ -193,6 +196,9 @@ def summary_text(run) -> str:
             blamed = ", ".join((r.blame or {}).get("blamed", {})) or (
                 "no clause: unattributed" if (r.blame or {}).get("unattributed") else r.check.clauses[0])
             lines.append(f"  {r.status.upper()} {r.check.name} [{blamed}]: {f['message']}")
+            if f.get("signature"):
+                lines.append(f"    behaves like the reference with {f['signature']['label']} "
+                             f"(the minimal case keeps this deviation signature)")
             spared = (r.blame or {}).get("spared", {})
             if spared:
                 lines.append("    not blamed: " + "; ".join(f"{c} ({why})" for c, why in spared.items()))
@@ -208,6 +214,13 @@ def summary_text(run) -> str:
             if f.get("reproducer"):
                 lines.append(f"    reproducer: {f['reproducer']}")
                 lines.append(f"    replay: {f['replay']}")
+    if run.diagnosis is not None:
+        dg = run.diagnosis
+        lines += ["", "DIAGNOSIS (docs/spec/deviations.md DEV-02): " + dg["summary"]]
+        for u in dg.get("unexplained", []):
+            lines.append(f"  unexplained: {u['check']} ({u['status']}): {u['message'][:200]}")
+        for u in dg.get("new_failures", []):
+            lines.append(f"  new failure under the set: {u['check']}: {u['message'][:200]}")
     counts = {s: sum(1 for r in table.values() if r["status"] == s) for s in STATUS_ORDER}
     checks = {s: sum(1 for r in run.results if r.status == s) for s in STATUS_ORDER}
     lines += ["", "clauses: " + ", ".join(f"{counts[s]} {s}" for s in STATUS_ORDER if counts[s])

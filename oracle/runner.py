@@ -93,6 +93,9 @@ class CheckResult:
     #: arrays for the pictures of a failure (oracle/pictures.py): the smallest case, the
     #: reference's and the backend's outputs on it; not part of report.json
     evidence: dict | None = None
+    #: the failing case as hypothesis found it, before oracle/shrink.py (a diagnosis shrinks it
+    #: again keeping its deviation signature, oracle/triage.py); not part of report.json
+    unshrunk: Case | None = None
 
     def to_json(self) -> dict:
         w = self.worst_ratio
@@ -114,6 +117,9 @@ class RunResult:
     started: str
     duration: float
     oracle_version: str = ORACLE_VERSION
+    #: the diagnosis of the failing checks (oracle/triage.py), when one was asked for: the
+    #: diagnosis.json dict, or {"available": False, "reason": ...}
+    diagnosis: dict | None = None
 
     @property
     def failed_clauses(self) -> list[str]:
@@ -220,7 +226,7 @@ def run_check(ctx: Context, check: Check, settings: Settings, known=()) -> Check
     if lost is not None:
         _record_lost(ctx, check, settings, result, lost, state["current"], state["fail"])
     elif result.status in ("fail", "error") and state["fail"] is not None:
-        _record_failure(ctx, check, settings, result, *state["fail"])
+        record_failure(ctx, check, settings, result, *state["fail"])
     elif result.status == "fail":
         result.blame = {"blamed": {c: "the check could not judge any case" for c in check.clauses},
                         "spared": {}}
@@ -279,21 +285,34 @@ def _record_lost(ctx, check, settings, result, lost, scene, earlier):
                     "spared": {}}
 
 
-def _record_failure(ctx, check, settings, result, scene, verdict):
+def shrink_failure(ctx, check, settings, scene, verdict, signature=None):
+    """oracle/shrink.py on a failing ``scene`` of ``check``, keeping the failure's mechanism and,
+    given a started ``signature`` (oracle/explain.py ``Signature``), its deviation signature:
+    ``(case, verdict, ShrinkStats)``."""
+    def evaluate(s):
+        try:
+            if signature is not None:
+                return signature.evaluate(s)
+            return check.evaluate(ctx, s.rounded(ctx.dtype))
+        except WorkerLost as lost:
+            raise StopShrinking(f"the backend's worker was lost while shrinking: {lost.reason}") from None
+
+    def mechanism(s, v):
+        return bl.mechanism(v, bl.facts(s.rounded(ctx.dtype)))
+
+    centred = not ctx.backend.supports_principal_point
+    return shrink(evaluate, scene, verdict, settings.shrink_budget, mechanism=mechanism,
+                  centred=centred, keep=None if signature is None else signature.keeps)
+
+
+def record_failure(ctx, check, settings, result, scene, verdict, signature=None):
+    """Fill ``result`` (status, failure, reproducer, blame, evidence) from the failing ``scene``
+    of ``check``, shrunk first when ``settings.shrink`` (with the deviation ``signature`` when
+    given)."""
     stats = None
+    result.unshrunk = scene
     if settings.shrink:
-        def evaluate(s):
-            try:
-                return check.evaluate(ctx, s.rounded(ctx.dtype))
-            except WorkerLost as lost:
-                raise StopShrinking(f"the backend's worker was lost while shrinking: {lost.reason}") from None
-
-        def mechanism(s, v):
-            return bl.mechanism(v, bl.facts(s.rounded(ctx.dtype)))
-
-        centred = not ctx.backend.supports_principal_point
-        scene, verdict, stats = shrink(evaluate, scene, verdict, settings.shrink_budget,
-                                       mechanism=mechanism, centred=centred)
+        scene, verdict, stats = shrink_failure(ctx, check, settings, scene, verdict, signature)
     rounded = scene.rounded(ctx.dtype)
     result.status = verdict_status(verdict)
     w = verdict.worst
@@ -343,23 +362,35 @@ def run(backend: BackendInfo, settings: Settings | None = None, checks=None, pro
     return RunResult(backend, settings, results, clauses, started, time.perf_counter() - t0)
 
 
-def run_isolated(spec: str, settings: Settings | None = None, checks=None, progress=None) -> RunResult:
+def run_isolated(spec: str, settings: Settings | None = None, checks=None, progress=None,
+                 after=None) -> RunResult:
     """:func:`run` with the backend ``spec`` in a worker process (oracle/isolation.py).
-    BackendError (one line) when it cannot be loaded; the worker is stopped at the end."""
+    BackendError (one line) when it cannot be loaded; the worker is stopped at the end.
+    ``after(result, backend)`` runs before that, through the same worker (oracle/triage.py
+    ``run_diagnosed`` diagnoses the failing checks there)."""
     settings = settings or Settings()
     backend = open_backend(spec, settings.memory_limit_mib)
     try:
-        return run(backend, settings, checks, progress)
+        result = run(backend, settings, checks, progress)
+        if after is not None:
+            after(result, backend)
+        return result
     finally:
         backend.session.close()
 
 
 def write_reports(result: RunResult, folder) -> tuple:
-    """report.json, report.txt (oracle/report.py) and index.html with its pictures
-    (oracle/html.py) in ``folder``; returns their paths."""
+    """report.json, report.txt (oracle/report.py), diagnosis.json when the run was diagnosed,
+    and index.html with its pictures (oracle/html.py) in ``folder``; returns the paths of
+    report.json, report.txt and index.html."""
+    from refgs.io.atomic import atomic_write_json
+
     from .html import write_page
     from .report import write_report
-    return (*write_report(result, folder), write_page(result, folder))
+    paths = write_report(result, folder)
+    if result.diagnosis is not None:
+        atomic_write_json(Path(folder) / "diagnosis.json", result.diagnosis)
+    return (*paths, write_page(result, folder))
 
 
 def check_backend(spec: str, settings: Settings | None = None, checks=None, progress=None) -> dict:

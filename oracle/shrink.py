@@ -16,6 +16,11 @@ visibility flags (cropping moves the clamp limits, which can turn another defect
 smallest case shows the defect the large one showed, not another one the shrinking happened
 upon.  Simplifying the config (no background, no opacity_scale) is kept when the failure stays:
 the feature was then not its cause, and oracle/blame.py no longer blames its clause.
+
+When a diagnosis has found the deviations that explain the failure (oracle/diagnose.py), ``keep``
+adds its deviation signature (oracle/explain.py ``Signature.keeps``): a step is kept only while
+the case still fails without deviations and is still explained by the failure's own deviations,
+so each minimal case shows one deviation cleanly rather than another the shrinking happened upon.
 """
 from __future__ import annotations
 
@@ -84,12 +89,14 @@ def _crop_box(case: Case, side: str, step: int):
 
 
 def shrink(evaluate, scene: Case, verdict: Verdict, budget: int = DEFAULT_BUDGET,
-           mechanism=None, centred: bool = False):
+           mechanism=None, centred: bool = False, keep=None):
     """Smallest case found on which ``evaluate(case) -> Verdict`` still fails the same way.
 
     ``mechanism(case, verdict) -> {"keys", "flags" (N, k)}`` (oracle/blame.py), or None to
-    require only a common failing output and problem sort.  Returns
-    ``(case, verdict, ShrinkStats)``.
+    require only a common failing output and problem sort.  ``keep(case, verdict) -> bool``: a
+    further rule a smaller case must pass (the deviation signature), or None.  Returns
+    ``(case, verdict, ShrinkStats)``; ``ShrinkStats.rejected`` counts the cases rejected by
+    ``mechanism`` or ``keep``.
     """
     target = _keys(verdict)
     stats = ShrinkStats(n_before=scene.n, size_before=(scene.camera.width, scene.camera.height))
@@ -113,6 +120,9 @@ def shrink(evaluate, scene: Case, verdict: Verdict, budget: int = DEFAULT_BUDGET
             if not np.array_equal(m["flags"], base["flags"][orig]):
                 stats.rejected += 1
                 return None
+        if keep is not None and not keep(s, v):
+            stats.rejected += 1
+            return None
         return v
 
     try:

@@ -284,7 +284,6 @@ def opaque_stack(draw, camera: refgs.Camera, n=(2, 20)) -> refgs.Gaussians:
     u0 = rng0.uniform(0.3, 0.7) * camera.width
     v0 = rng0.uniform(0.3, 0.7) * camera.height
     seeds = draw(st.lists(st.integers(0, 2**32 - 1), min_size=n[0], max_size=n[1]), label="layers")
-    k = len(seeds)
     rngs = [np.random.default_rng(sd) for sd in seeds]
     du, dv, dz, ls, lg = (np.array([f(r) for r in rngs]) for f in (
         lambda r: r.uniform(-2, 2), lambda r: r.uniform(-2, 2), lambda r: r.uniform(0.05, 0.5),

@@ -258,8 +258,11 @@ def tie_distances(ref: refgs.RenderOutput, cond_eps: float = 0.0) -> TieDistance
     lnx, lpx, lny, lpy = (float(v) for v in frustum_limits(cam, profile, np.dtype(np.float64)))
     tz = np.where(p2d["depths"] > 0, p2d["depths"], 1.0)
     ux, uy = p2d["t"][:, 0] / tz, p2d["t"][:, 1] / tz
-    g_clamp = np.min(np.stack([np.abs(ux + lnx) / lnx, np.abs(ux - lpx) / lpx,
-                               np.abs(uy + lny) / lny, np.abs(uy - lpy) / lpy]), axis=0)
+    if np.isfinite(lnx):
+        g_clamp = np.min(np.stack([np.abs(ux + lnx) / lnx, np.abs(ux - lpx) / lpx,
+                                   np.abs(uy + lny) / lny, np.abs(uy - lpy) / lpy]), axis=0)
+    else:                        # no frustum clamp (deviation no_frustum_clamp): no kink to meet
+        g_clamp = np.full(n, FAR)
     sens = _conditioning(g, cam, p2d, (lnx, lpx, lny, lpy), ux, uy)
     # colour clamp kink (gradient only): |rgb| relative to the size of its terms (CNV-10)
     deg = ref.config.active_sh_degree(g.sh.shape[1])

@@ -13,7 +13,8 @@ goes away:
     {"op": "render", "args": [gaussians, camera, config]}
         -> {"handle": h, "fields": {name: array}, "malformed": {name: why}}
     {"op": "render_backward", "handle": h, "cotangents": {"v_image": ..., ...}}
-        -> {"fields": {...}, "malformed": {...}}
+        -> {"fields": {...}, "malformed": {...}}, or {"released": h} when the worker no longer
+           holds that output (it keeps the last KEEP_OUTPUTS)
     {"op": "stage", "name": "projection", "args": [...], "fields": [names] | None}
         -> {"fields": ..., "malformed": ...} or {"array": a} / {"malformed_value": why}
 
@@ -137,7 +138,7 @@ class Server:
                 return {"handle": h, "fields": got, "malformed": bad}
             if op == "render_backward":
                 if req["handle"] not in self.outputs:
-                    return {"oracle_error": f"render output {req['handle']} is no longer held"}
+                    return {"released": req["handle"]}
                 grads = obj.render_backward(self.outputs[req["handle"]], **req["cotangents"])
                 got, bad = _fields(grads, GRAD_FIELDS + ("means2d",))
                 return {"fields": got, "malformed": bad}

@@ -88,7 +88,8 @@ _FAST = "refgs.fast.backend:FastBackend"
 _TORCH = "oracle.adapters.torch_backend:TorchBackend"
 
 #: name -> Entry.  "reference" / "fast": the trainer's names (any dtype and profile);
-#: ref64 ... gsplat: the bench's names (one dtype each).
+#: ref64 ... gsplat: the bench's names (one dtype each); gswarp32, taichi32, taichi64: outside
+#: renderers (docs/conformance.md).
 BACKENDS: dict[str, Entry] = {e.name: e for e in (
     Entry("reference", _REF, "refgs reference {dtype}"),
     Entry("fast", _FAST, "refgs.fast {dtype}", helpers=_FAST_HELPERS, extra="numba"),
@@ -108,6 +109,16 @@ BACKENDS: dict[str, Entry] = {e.name: e for e in (
     Entry("gsplat", "oracle.adapters.gsplat_backend:gsplat_backend",
           "gsplat 1.5.3 rasterization float32", dtype="float32", profile="gsplat",
           factory=False, extra="gsplat"),
+    # renderers written outside this project, behind the conformance suite's adapters
+    # (docs/conformance.md); each needs its optional extra
+    Entry("gswarp32", "oracle.adapters.gswarp_backend:gswarp_float32", "gswarp 1.1.0 {dtype}",
+          dtype="float32", profile="inria", factory=False, extra="gswarp"),
+    Entry("taichi32", "oracle.adapters.taichi_splatting_backend:taichi_float32",
+          "taichi-splatting 0.13.0 {dtype}", dtype="float32", profile="inria", factory=False,
+          extra="taichi"),
+    Entry("taichi64", "oracle.adapters.taichi_splatting_backend:taichi_float64",
+          "taichi-splatting 0.13.0 {dtype}", dtype="float64", profile="inria", factory=False,
+          extra="taichi"),
 )}
 
 

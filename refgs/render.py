@@ -19,7 +19,7 @@ from .sh import eval_sh_colors, eval_sh_colors_backward, num_sh_coeffs
 from .types import Camera, Gaussians, Gradients, RenderConfig, RenderOutput
 
 
-def _fail(field: str, expected: str, got) -> None:
+def input_error(field: str, expected: str, got) -> None:
     raise ValueError(f"{field}: expected {expected}, got {got}")
 
 
@@ -28,7 +28,7 @@ def _as_float_array(field: str, value, expected: str) -> np.ndarray:
     try:
         return np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
-        _fail(field, expected, repr(value))
+        input_error(field, expected, repr(value))
 
 
 def resolve_profile(config: RenderConfig) -> Profile:
@@ -51,33 +51,33 @@ def _all_finite(arr: np.ndarray) -> bool:
 def validate_gaussians(g: Gaussians) -> None:
     """Raise ValueError naming the field and what was expected (API-03, CNV-05, CNV-11)."""
     if not isinstance(g, Gaussians):
-        _fail("gaussians", "a refgs.Gaussians", type(g).__name__)
+        input_error("gaussians", "a refgs.Gaussians", type(g).__name__)
     n = g.means.shape[0] if g.means.ndim == 2 else -1
     shapes = {"means": (n, 3), "log_scales": (n, 3), "quats": (n, 4), "opacity_logits": (n,)}
     for name, shape in shapes.items():
         arr = getattr(g, name)
         if arr.shape != shape or n < 0:
-            _fail(f"Gaussians.{name}", f"shape {('N',) + shape[1:]} with N = {max(n, 0)}", arr.shape)
+            input_error(f"Gaussians.{name}", f"shape {('N',) + shape[1:]} with N = {max(n, 0)}", arr.shape)
     if g.sh.ndim != 3 or g.sh.shape[0] != n or g.sh.shape[2] != 3 or g.sh.shape[1] < 1:
-        _fail("Gaussians.sh", f"shape (N, K, 3) with N = {n}, K >= 1", g.sh.shape)
+        input_error("Gaussians.sh", f"shape (N, K, 3) with N = {n}, K >= 1", g.sh.shape)
     dtypes = {name: getattr(g, name).dtype for name in Gaussians.FIELDS}
     if len(set(dtypes.values())) != 1:
-        _fail("Gaussians", "all five fields in one dtype (float32 or float64)",
+        input_error("Gaussians", "all five fields in one dtype (float32 or float64)",
               {k: str(v) for k, v in dtypes.items()})
     for name in Gaussians.FIELDS:
         arr = getattr(g, name)
         if not _all_finite(arr):
             bad = np.argwhere(~np.isfinite(arr))[0]
-            _fail(f"Gaussians.{name}", "finite values", f"{arr[tuple(bad)]} at index {tuple(int(i) for i in bad)}")
+            input_error(f"Gaussians.{name}", "finite values", f"{arr[tuple(bad)]} at index {tuple(int(i) for i in bad)}")
     if n > 0:
         lim = LOG_SCALE_MAX_FRACTION * np.log(np.finfo(g.log_scales.dtype).max)
         if np.any(g.log_scales > lim):
-            _fail("Gaussians.log_scales", f"values <= {lim:.1f} (larger scales overflow the covariance "
+            input_error("Gaussians.log_scales", f"values <= {lim:.1f} (larger scales overflow the covariance "
                   f"in {g.log_scales.dtype})", float(g.log_scales.max()))
         q = g.quats                     # column by column: np.any along a length-4 axis is slow
         zero = (q[:, 0] == 0) & (q[:, 1] == 0) & (q[:, 2] == 0) & (q[:, 3] == 0)
         if np.any(zero):
-            _fail("Gaussians.quats", "non-zero quaternions (w, x, y, z) (CNV-05)",
+            input_error("Gaussians.quats", "non-zero quaternions (w, x, y, z) (CNV-05)",
                   f"a zero quaternion at row {int(np.flatnonzero(zero)[0])}")
 
 
@@ -85,48 +85,48 @@ def validate_inputs(g: Gaussians, camera: Camera, config: RenderConfig) -> None:
     """Raise ValueError naming the field and what was expected (API-03)."""
     validate_gaussians(g)
     if not isinstance(camera, Camera):
-        _fail("camera", "a refgs.Camera", type(camera).__name__)
+        input_error("camera", "a refgs.Camera", type(camera).__name__)
     if not isinstance(config, RenderConfig):
-        _fail("config", "a refgs.RenderConfig", type(config).__name__)
+        input_error("config", "a refgs.RenderConfig", type(config).__name__)
     n = g.means.shape[0]
     # camera
     W2C = _as_float_array("Camera.world_to_camera", camera.world_to_camera, "a finite (4, 4) matrix")
     if W2C.shape != (4, 4) or not np.all(np.isfinite(W2C)):
-        _fail("Camera.world_to_camera", "a finite (4, 4) matrix", W2C.shape)
+        input_error("Camera.world_to_camera", "a finite (4, 4) matrix", W2C.shape)
     R = W2C[:3, :3].astype(np.float64)
     if not np.array_equal(W2C[3], [0, 0, 0, 1]) or \
             np.max(np.abs(R @ R.T - np.eye(3))) > RIGID_TOL or abs(np.linalg.det(R) - 1) > RIGID_TOL:
-        _fail("Camera.world_to_camera", "a rigid transform [[R, t], [0, 0, 0, 1]] with R a rotation "
+        input_error("Camera.world_to_camera", "a rigid transform [[R, t], [0, 0, 0, 1]] with R a rotation "
               f"(R R^T = I, det R = 1 within {RIGID_TOL})", "a non-rigid matrix")
     K = _as_float_array("Camera.K", camera.K, "a finite (3, 3) intrinsics matrix")
     if K.shape != (3, 3) or not np.all(np.isfinite(K)):
-        _fail("Camera.K", "a finite (3, 3) intrinsics matrix", K.shape)
+        input_error("Camera.K", "a finite (3, 3) intrinsics matrix", K.shape)
     if not (K[0, 0] > 0 and K[1, 1] > 0):
-        _fail("Camera.K", "positive focal lengths fx = K[0,0], fy = K[1,1]", (K[0, 0], K[1, 1]))
+        input_error("Camera.K", "positive focal lengths fx = K[0,0], fy = K[1,1]", (K[0, 0], K[1, 1]))
     for name in ("width", "height"):
         v = getattr(camera, name)
         if not isinstance(v, (int, np.integer)) or v <= 0:
-            _fail(f"Camera.{name}", "a positive integer", v)
+            input_error(f"Camera.{name}", "a positive integer", v)
     # config
     resolve_profile(config)
     bg = _as_float_array("RenderConfig.background", config.background, "3 finite values")
     if bg.shape != (3,) or not np.all(np.isfinite(bg)):
-        _fail("RenderConfig.background", "3 finite values", config.background)
+        input_error("RenderConfig.background", "3 finite values", config.background)
     if config.sh_degree is not None and (isinstance(config.sh_degree, bool)
                                          or not isinstance(config.sh_degree, (int, np.integer))):
-        _fail("RenderConfig.sh_degree", "None or an integer in 0..3", repr(config.sh_degree))
+        input_error("RenderConfig.sh_degree", "None or an integer in 0..3", repr(config.sh_degree))
     deg = config.active_sh_degree(g.sh.shape[1])
     if not 0 <= deg <= 3:
-        _fail("RenderConfig.sh_degree", "an integer in 0..3", config.sh_degree)
+        input_error("RenderConfig.sh_degree", "an integer in 0..3", config.sh_degree)
     if g.sh.shape[1] < num_sh_coeffs(deg):
-        _fail("Gaussians.sh", f"K >= {num_sh_coeffs(deg)} coefficients for sh_degree {deg}", g.sh.shape)
+        input_error("Gaussians.sh", f"K >= {num_sh_coeffs(deg)} coefficients for sh_degree {deg}", g.sh.shape)
     if config.antialiased and resolve_profile(config).name != "gsplat":
-        _fail("RenderConfig.antialiased", "False unless profile is 'gsplat'", True)
+        input_error("RenderConfig.antialiased", "False unless profile is 'gsplat'", True)
     if config.opacity_scale is not None:
         s = _as_float_array("RenderConfig.opacity_scale", config.opacity_scale,
                             f"None or ({n},) finite non-negative values")
         if s.shape != (n,) or not np.all(np.isfinite(s)) or np.any(s < 0):
-            _fail("RenderConfig.opacity_scale", f"None or ({n},) finite non-negative values", s.shape)
+            input_error("RenderConfig.opacity_scale", f"None or ({n},) finite non-negative values", s.shape)
 
 
 def render(gaussians: Gaussians, camera: Camera, config: RenderConfig | None = None) -> RenderOutput:
@@ -143,7 +143,7 @@ def render(gaussians: Gaussians, camera: Camera, config: RenderConfig | None = N
     W, H = int(camera.width), int(camera.height)
     if config.sh_degree is not None and (isinstance(config.sh_degree, bool)
                                          or not isinstance(config.sh_degree, (int, np.integer))):
-        _fail("RenderConfig.sh_degree", "None or an integer in 0..3", repr(config.sh_degree))
+        input_error("RenderConfig.sh_degree", "None or an integer in 0..3", repr(config.sh_degree))
     deg = config.active_sh_degree(g.sh.shape[1])
 
     cov = covariance_3d(g.quats, g.log_scales, profile)                         # COV-01
@@ -171,12 +171,12 @@ def render(gaussians: Gaussians, camera: Camera, config: RenderConfig | None = N
     )
 
 
-def _check_cotangent(name: str, v, shape, dt):
+def check_cotangent(name: str, v, shape, dt):
     if v is None:
         return None
     v = np.asarray(v)
     if v.shape != shape or not np.all(np.isfinite(v)):
-        _fail(name, f"finite values of shape {shape}", v.shape)
+        input_error(name, f"finite values of shape {shape}", v.shape)
     return v.astype(dt, copy=False)
 
 
@@ -191,11 +191,11 @@ def render_backward(out: RenderOutput, v_image, v_alpha=None, v_depth=None) -> G
     g, cam = out.gaussians, out.camera
     dt = out.image.dtype
     H, W = out.alpha.shape
-    v_image = _check_cotangent("v_image", v_image, (H, W, 3), dt)
+    v_image = check_cotangent("v_image", v_image, (H, W, 3), dt)
     if v_image is None:
-        _fail("v_image", f"an array of shape {(H, W, 3)}", None)
-    v_alpha = _check_cotangent("v_alpha", v_alpha, (H, W), dt)
-    v_depth = _check_cotangent("v_depth", v_depth, (H, W), dt)
+        input_error("v_image", f"an array of shape {(H, W, 3)}", None)
+    v_alpha = check_cotangent("v_alpha", v_alpha, (H, W), dt)
+    v_depth = check_cotangent("v_depth", v_depth, (H, W), dt)
     profile = c["profile"]
     bg = np.asarray(out.config.background, dt)
     vc = composite_backward(c["g2d"], c["lists"], W, H, profile, bg, out.final_T,

@@ -271,10 +271,10 @@ def _needles(n, seed):
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
 def test_live_intersections_contain_every_slot_the_screen_keeps(dtype):
-    """refgs.fast.kernels.tile_alive is conservative: every (tile, slot) that the screen keeps in
+    """refgs.fast.tiles.tile_alive is conservative: every (tile, slot) that the screen keeps in
     some pixel row of the full tile lists is live, so the live lists change no output
     (test_screen_is_exact); and it is tight: few live slots are not kept."""
-    from refgs.fast import kernels as rk
+    from refgs.fast import tiles as tl
     from refgs.fast.render import live_intersections
     for seed in range(3):
         g, cam = _needles(400, seed) if seed else benchmark_scene(600, 96, 80, seed=3)
@@ -287,26 +287,26 @@ def test_live_intersections_contain_every_slot_the_screen_keeps(dtype):
                                             full.opacities, eps)
         H, W = full.alpha.shape
         gx, n_tiles = -(-W // 16), c["lists"]["offsets"].size - 1
-        gauss, offsets, pos = rk.build_tile_lists(order, c["tile_rect"], n_tiles, gx, rect_off,
+        gauss, offsets, pos = tl.build_tile_lists(order, c["tile_rect"], n_tiles, gx, rect_off,
                                                   np.ones(live.size, np.bool_))
         assert np.array_equal(gauss, c["lists"]["gauss"])     # the full lists, in depth order
-        # the exact screen's row lists on the full lists
+        # the slots the exact screen keeps in some row of the full lists (refgs.fast.tiles.chords)
         dt = np.dtype(dtype)
-        img, al, dp, T = (np.empty(s, dt) for s in ((H, W, 3), (H, W), (H, W), (H, W)))
-        nc, last = np.empty((H, W), np.int32), np.empty((H, W), np.int32)
-        row_cnt = np.zeros((n_tiles, 16), np.int64)
-        row_slots = np.empty(16 * gauss.size, np.int32)
-        rk.composite_forward(0, n_tiles, gauss, offsets, pos, full.means2d, full.conics,
-                             full.opacities, full.colors, full.depths, c["bg"], c["rc"], eps, True,
-                             True, gx, img, al, dp, nc, last, T, row_cnt, row_slots)
-        # live bit of each full-list entry (tile t, position p): via the Gaussian's rectangle
         where = {int(gi): k for k, gi in enumerate(order)}
-        kept = live_kept = 0
+        kept = 0
         for t in range(n_tiles):
             a, L = offsets[t], offsets[t + 1] - offsets[t]
-            rows = row_slots[16 * a:16 * (a + L)].reshape(16, L)
+            if L == 0:
+                continue
             ty, tx = divmod(t, gx)
-            for s in {int(x) for r in range(16) for x in rows[r, :row_cnt[t, r]]}:
+            tab = np.empty((L, tl.N_TAB), dt)
+            tl.gather(gauss, a, L, full.means2d, full.conics, full.opacities, full.colors,
+                      full.depths, tab)
+            xs, ys = tl.centres(tx * 16, tab), tl.centres(ty * 16, tab)
+            cnt, rs = np.empty(16, np.int64), np.empty((16, L), np.int32)
+            col = np.empty((16, L), np.int8), np.empty((16, L), np.int8)
+            tl.chords(tab, L, xs, ys, eps, True, cnt, rs, *col)
+            for s in {int(x) for r in range(16) for x in rs[r, :cnt[r]]}:
                 gi = int(gauss[a + s])
                 k = where[gi]
                 x0, x1, y0, _ = c["tile_rect"][gi]
@@ -402,19 +402,19 @@ def test_f32_geometry_is_decided_in_float64(profile):
 
 
 def test_gather_carries_a_float64_mean_as_value_plus_residual():
-    """refgs.fast.kernels._gather: a float32 table of float64 means holds D(m) and D(m - D(m))
+    """refgs.fast.tiles.gather: a float32 table of float64 means holds D(m) and D(m - D(m))
     (their float64 sum is m to ~2^-48 relative); a mean already in the table's dtype has residual
     exactly 0, so x + residual = x and those renders are unchanged bit for bit."""
-    from refgs.fast import kernels as rk
+    from refgs.fast import tiles as tl
     rng = np.random.default_rng(5)
     m64 = rng.uniform(-600, 1200, (64, 2))
     gauss = np.arange(64, dtype=np.int64)
     other = [np.zeros((64, 3), np.float32), np.zeros(64, np.float32), np.zeros((64, 3), np.float32),
              np.zeros(64, np.float32)]
     for means, dt in ((m64, np.float32), (m64.astype(np.float32), np.float32), (m64, np.float64)):
-        tab = np.full((64, rk.N_TAB), np.nan, dt)
-        rk._gather(gauss, 0, 64, means, other[0].astype(dt), other[1].astype(dt),
-                   other[2].astype(dt), other[3].astype(dt), tab)
+        tab = np.full((64, tl.N_TAB), np.nan, dt)
+        tl.gather(gauss, 0, 64, means, other[0].astype(dt), other[1].astype(dt),
+                  other[2].astype(dt), other[3].astype(dt), tab)
         np.testing.assert_array_equal(tab[:, :2], means.astype(dt))
         if means.dtype == dt:
             assert np.all(tab[:, 10:12] == 0)
@@ -479,10 +479,11 @@ def test_parallel_pieces_give_the_sequential_result():
     threads (refgs.fast.render: depth_order, build_tile_lists, parallel_bands); each must equal
     its one-thread form exactly, ties in depth included."""
     from refgs.fast import kernels as rk
-    from refgs.fast.render import MIN_PARALLEL_SORT, build_tile_lists, depth_order, parallel_bands
+    from refgs.fast import tiles as tl
+    from refgs.fast.render import build_tile_lists, depth_order, parallel_bands
 
     rng = np.random.default_rng(3)
-    n = 3 * MIN_PARALLEL_SORT
+    n = 50000
     depths = rng.random(n)
     depths[::5] = 0.25                                  # many exact ties, broken by index
     idx = np.flatnonzero(rng.random(n) < 0.8)
@@ -497,9 +498,9 @@ def test_parallel_pieces_give_the_sequential_result():
     r = rect[expected_order]
     rect_off = np.concatenate([[0], np.cumsum((r[:, 1] - r[:, 0]) * (r[:, 3] - r[:, 2]))])
     live = rng.random(int(rect_off[-1])) < 0.7           # a live subset, as tile_alive gives
-    full_g, full_off, full_pos = rk.build_tile_lists(expected_order, rect, 8 * 6, 8, rect_off,
+    full_g, full_off, full_pos = tl.build_tile_lists(expected_order, rect, 8 * 6, 8, rect_off,
                                                      np.ones(live.size, np.bool_))
-    gauss1, offsets1, pos1 = rk.build_tile_lists(expected_order, rect, 8 * 6, 8, rect_off, live)
+    gauss1, offsets1, pos1 = tl.build_tile_lists(expected_order, rect, 8 * 6, 8, rect_off, live)
     # the live lists are the full lists filtered, each entry keeping its full-list position
     for t in range(8 * 6):
         fl = full_g[full_off[t]:full_off[t + 1]]
@@ -523,6 +524,26 @@ def test_parallel_pieces_give_the_sequential_result():
             assert np.array_equal(out, ref), nt
     finally:
         numba.set_num_threads(saved)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_depth_order_is_the_stable_argsort(dtype):
+    """refgs.fast.render.depth_order (a radix sort of the depths' bits) gives numpy's stable
+    argsort: negative, zero (both signs), tiny, huge and tied depths; non-finite ones fall back."""
+    from refgs.fast.render import depth_order
+    rng = np.random.default_rng(11)
+    n = 20000
+    d = rng.normal(0, 3, n) * 10.0 ** rng.integers(-30, 30, n)
+    d[::7] = 1.5
+    d[::11] = 0.0
+    d[::13] = -0.0
+    d[::17] = -2.25
+    d = d.astype(dtype)
+    idx = np.flatnonzero(rng.random(n) < 0.9)
+    expected = idx[np.argsort(d[idx], kind="stable")]
+    assert np.array_equal(depth_order(idx, d), expected)
+    d[idx[5]] = np.inf
+    assert np.array_equal(depth_order(idx, d), idx[np.argsort(d[idx], kind="stable")])
 
 
 def test_validation_errors():

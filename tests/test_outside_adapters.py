@@ -200,3 +200,14 @@ def test_matrix_tabulates_columns_and_marks_a_backend_that_cannot_load(tmp_path)
     assert [c["status"] for c in m["clauses"]["CNV-08"]["cells"]] == ["pass", "unavailable"]
     assert (tmp_path / "refgs_float32" / "report.json").exists()
     assert "| CNV-08 | pass" in (tmp_path / "matrix.md").read_text()
+
+
+@pytest.mark.skipif(not (HAS_GSWARP and HAS_TAICHI), reason="gswarp or taichi-splatting not installed")
+def test_outside_renderers_load_by_their_registry_names():
+    """``python -m oracle check --backend gswarp32`` (and taichi32 / taichi64) resolve through
+    refgs/backends.py to the adapters' objects."""
+    from oracle.protocol import load_backend
+    gs, t32, t64 = (load_backend(n) for n in ("gswarp32", "taichi32", "taichi64"))
+    assert (gs.name, gs.dtype, gs.has_backward) == ("gswarp", "float32", True)
+    assert (t32.dtype, t64.dtype) == ("float32", "float64")
+    assert set(t32.stages) == set(t64.stages) == {"projection", "sh"}

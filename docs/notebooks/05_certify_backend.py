@@ -159,6 +159,10 @@ assert not np.allclose(g_bad.log_scales, g_ref.log_scales, rtol=1e-6, atol=1e-12
 # python -m oracle check --backend my_backend:backend --report out/
 # ```
 #
-# The summary lists every clause with `pass`, `fail`, `not provided` (you do not return that
-# output or gradient) or `n/a` (outside your declared capabilities); `out/report.json` has the
-# details, `out/failures/*.npz` the reproducers. docs/oracle.md walks through it end to end.
+# The command line runs your backend in a worker process, so a crash or a hang becomes a
+# `crash` or `timeout` verdict instead of the end of the run. The summary lists every clause with
+# its status (`pass`, `fail`, `error`, `crash`, `timeout`, `known`, `not provided` -- you do not
+# return that output or gradient -- or `n/a` -- outside your declared capabilities);
+# `out/index.html` is the page to read, with the smallest failing scene of every failure drawn
+# beside the reference's; `out/report.json` has the details, `out/failures/*.npz` the
+# reproducers. docs/oracle.md walks through it end to end.

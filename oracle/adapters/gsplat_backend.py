@@ -141,8 +141,10 @@ class GsplatRenderOutput:
 
 
 class GsplatBackend:
-    """gsplat 1.5.3 (profile "gsplat", float32).  Stage functions run anywhere; ``render`` and
-    ``render_backward`` need CUDA (``unavailable_reason`` is None exactly when they can run)."""
+    """gsplat 1.5.3 (profile "gsplat", float32).  Stage functions run anywhere (CPU); ``render``
+    and ``render_backward`` need CUDA (``unavailable_reason`` is None exactly when they can
+    run).  ``device``: None renders on CUDA when present; "cpu" checks the stage functions only;
+    "cuda" renders on CUDA or declares why it cannot."""
 
     name = "gsplat"
     version = gsplat.__version__
@@ -152,9 +154,15 @@ class GsplatBackend:
     supports_antialiased = True
     supports_opacity_scale = True
 
-    def __init__(self):
-        self.unavailable_reason = _cuda_reason()
+    def __init__(self, device: str | None = None):
+        if device not in (None, "cpu", "cuda"):
+            raise ValueError(f"device: expected 'cpu', 'cuda' or None, got {device!r}")
+        self.unavailable_reason = _cuda_reason() if device != "cpu" else (
+            "this backend checks gsplat's pure-torch stage functions on the CPU; "
+            "gsplat.rasterization is CUDA-only (gsplat_cuda renders with it)")
         self.has_backward = self.unavailable_reason is None
+        if device is not None:
+            self.name = f"gsplat ({'CUDA' if device == 'cuda' else 'CPU functions'})"
 
     # ---- stage functions (oracle/protocol.py), gsplat's pure-torch code on CPU ---------------
     def stage_covariance(self, quats, log_scales) -> np.ndarray:
@@ -222,6 +230,9 @@ class GsplatBackend:
 
 
 gsplat_backend = GsplatBackend()
+#: pinned: the pure-torch stage functions on the CPU only, or the CUDA rasterizer
+gsplat_cpu = GsplatBackend("cpu")
+gsplat_cuda = GsplatBackend("cuda")
 
 __all__ = ["GsplatBackend", "GsplatRenderOutput", "BackendUnavailable", "covariance_3d",
-           "project_gaussians", "eval_sh_colors", "gsplat_backend"]
+           "project_gaussians", "eval_sh_colors", "gsplat_backend", "gsplat_cpu", "gsplat_cuda"]

@@ -170,7 +170,9 @@ class GswarpRenderOutput:
 
 
 class GswarpBackend:
-    """gswarp 1.1.0, profile "inria", float32, on CUDA when present, else on Warp's CPU device."""
+    """gswarp 1.1.0, profile "inria", float32; ``device`` "cuda", "cpu" (Warp's CPU device) or
+    None (CUDA when present, else the CPU).  A CUDA backend without a CUDA device declares
+    ``unavailable_reason`` (its render-level checks are n/a)."""
 
     name = "gswarp"
     version = gswarp.__version__
@@ -183,8 +185,15 @@ class GswarpBackend:
     unavailable_reason = None
     known_differences = KNOWN_DIFFERENCES
 
-    def __init__(self):
-        self.device = _device()
+    def __init__(self, device: str | None = None):
+        if device not in (None, "cpu", "cuda"):
+            raise ValueError(f"device: expected 'cpu', 'cuda' or None, got {device!r}")
+        self.device = device or _device()
+        if self.device == "cuda" and not torch.cuda.is_available():
+            self.unavailable_reason = "gswarp on CUDA: torch sees no CUDA device here"
+            self.has_backward = False
+        if device is not None:
+            self.name = f"gswarp ({device.upper() if device == 'cuda' else 'CPU'})"
         if self.device == "cpu":
             _enable_cpu_tiles()
 
@@ -271,5 +280,9 @@ class GswarpBackend:
 
 
 gswarp_float32 = GswarpBackend()
+#: pinned to a device: Warp's CPU device (with cooperative CPU blocks), or CUDA
+gswarp_cpu = GswarpBackend("cpu")
+gswarp_cuda = GswarpBackend("cuda")
 
-__all__ = ["GswarpBackend", "GswarpRenderOutput", "camera_settings", "gswarp_float32"]
+__all__ = ["GswarpBackend", "GswarpRenderOutput", "camera_settings", "gswarp_cpu", "gswarp_cuda",
+           "gswarp_float32"]

@@ -234,12 +234,16 @@ class TaichiSplattingBackend:
     supports_antialiased = False
     supports_opacity_scale = True
 
-    def __init__(self, dtype: str):
+    def __init__(self, dtype: str, require_cuda: bool = False):
         if dtype not in TORCH:
             raise ValueError(f"dtype: expected one of {sorted(TORCH)}, got {dtype!r}")
         self.dtype = dtype
         self.device = "cuda" if CUDA else "cpu"
         self.unavailable_reason = _F64_REASON if dtype == "float64" else (None if CUDA else _CPU_REASON)
+        if require_cuda:
+            self.name = "taichi-splatting (CUDA)"
+            if not CUDA:
+                self.unavailable_reason = "taichi-splatting on CUDA: torch sees no CUDA device here"
         self.has_backward = self.unavailable_reason is None
         self.known_differences = KNOWN_DIFFERENCES[dtype]
 
@@ -371,6 +375,10 @@ def _sh_grad(v_sh_taichi: np.ndarray, n_coeffs: int) -> np.ndarray:
 
 taichi_float32 = TaichiSplattingBackend("float32")
 taichi_float64 = TaichiSplattingBackend("float64")
+#: the CUDA renderer only (Taichi picks its device per process: on a machine with CUDA,
+#: taichi_float32 renders there too)
+taichi_cuda32 = TaichiSplattingBackend("float32", require_cuda=True)
 
 __all__ = ["TaichiSplattingBackend", "TaichiRenderOutput", "BackendUnavailable", "camera_params",
-           "factor_covariance", "wxyz_to_xyzw", "taichi_float32", "taichi_float64"]
+           "factor_covariance", "wxyz_to_xyzw", "taichi_cuda32", "taichi_float32",
+           "taichi_float64"]

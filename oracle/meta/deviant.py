@@ -9,6 +9,7 @@ render and render_backward but no stage functions, and never modifies refgs.
     deviant(*names)                    refgs (inria, float64) with ``names`` on
     gsplat_as_inria                    refgs' gsplat profile declared as "inria"
     four_deviations, no_dilation_float32   examples for ``python -m oracle diagnose``
+    two_deviations                     the shrinker keeps each failure's own deviation
     random_combinations(seed, count)   seeded compatible pairs and triples of observable deviations
 """
 from __future__ import annotations
@@ -59,6 +60,10 @@ gsplat_as_inria = DeviantBackend(frozenset(), profile="inria", renders_as="gspla
 four_deviations = deviant("no_dilation", "no_frustum_clamp", "alpha_skip_off", "rotation_transposed")
 #: refgs at float32 without the 0.3 dilation (the diagnosis judged against float32 tolerances)
 no_dilation_float32 = DeviantBackend(frozenset({"no_dilation"}), dtype="float32")
+#: two departures that show in different checks: colours clamped to [0, 1] (forward_sh,
+#: forward_colour_clamp) and no frustum clamp (forward_frustum_clamp): the minimal case of each
+#: failing check keeps its own deviation (ORC-06 with DEV-02, tests/test_diagnose.py)
+two_deviations = deviant("colour_clamp_01", "no_frustum_clamp")
 
 
 def observable_names() -> list[str]:
@@ -81,4 +86,4 @@ def random_combinations(seed: int, count: int, sizes=(2, 3)) -> list[frozenset]:
 
 
 __all__ = ["DeviantBackend", "deviant", "four_deviations", "gsplat_as_inria",
-           "no_dilation_float32", "observable_names", "random_combinations"]
+           "no_dilation_float32", "observable_names", "random_combinations", "two_deviations"]

@@ -27,21 +27,22 @@ MIN_ROW_CHUNK = 4096
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _update(lo, hi, p, g, m, v, lr, keep, c1, b2, c2, bc1, sbc2, eps):
-    """Rows lo..hi of p, g, m, v (N, C) contiguous, one dtype; lr (C,) float64; keep (N, C)
-    bool or (0, 0).  Each element is independent, so any split of the rows over threads gives
-    the same bits.
+    """Rows lo..hi of p, g, m, v (N, C) contiguous, one dtype; lr (C,) float64; keep (N, K)
+    bool with K dividing C -- keep[i, j // (C / K)] holds element (i, j) -- or (0, 0) for none.
+    Each element is independent, so any split of the rows over threads gives the same bits.
 
     c1 = 1 - b1, b2, c2 = 1 - b2 in the parameter's dtype; bc1 = 1 - b1^s, sbc2 =
     sqrt(1 - b2^s), eps float64 -- the scalars of Adam.step, with the types numpy gives them.
     """
     cols = p.shape[1]
     has_keep = keep.shape[0] > 0
+    rep = cols // keep.shape[1] if has_keep else 1
     # storing the float64 step in tmp rounds it to the parameter's dtype first, as numpy's
     # ``.astype(p.dtype)``
     tmp = np.empty(1, p.dtype)
     for i in range(lo, hi):
         for j in range(cols):
-            if has_keep and keep[i, j]:
+            if has_keep and keep[i, j // rep]:
                 continue
             mi = m[i, j]
             gi = g[i, j]
@@ -53,6 +54,23 @@ def _update(lo, hi, p, g, m, v, lr, keep, c1, b2, c2, bc1, sbc2, eps):
             p[i, j] = p[i, j] - tmp[0]
             m[i, j] = mn
             v[i, j] = vn
+
+
+def _keep_blocks(keep: np.ndarray, shape: tuple) -> np.ndarray:
+    """``keep`` broadcast against a parameter of ``shape`` as (N, K), each entry covering C / K
+    consecutive elements of a row: the leading axes it has in full, the trailing ones it
+    broadcasts (a frozen row (N,), frozen SH coefficients (N, K, 1)) -- without materialising the
+    parameter-sized mask; other patterns are broadcast in full (K = C)."""
+    n = shape[0]
+    if keep.ndim == 1:
+        keep = keep.reshape((-1,) + (1,) * (len(shape) - 1))
+    full = np.broadcast_to(keep, shape)                # raises ValueError if it does not fit
+    d = keep.ndim
+    while d > 1 and keep.shape[d - 1] == 1:
+        d -= 1                                         # trailing axes of length 1 broadcast
+    if keep.shape[:d] == tuple(shape[:d]):
+        return np.ascontiguousarray(keep.reshape(n, -1))
+    return np.ascontiguousarray(full).reshape(n, -1)
 
 
 def adam_update(p, g, m, v, lr, keep, step: int, betas, eps: float) -> bool:
@@ -74,10 +92,7 @@ def adam_update(p, g, m, v, lr, keep, step: int, betas, eps: float) -> bool:
         if keep is None:
             keep2 = np.zeros((0, 0), np.bool_)
         else:
-            keep = np.asarray(keep, bool)
-            if keep.ndim == 1:
-                keep = keep.reshape((-1,) + (1,) * (p.ndim - 1))
-            keep2 = np.ascontiguousarray(np.broadcast_to(keep, p.shape)).reshape(n, cols)
+            keep2 = _keep_blocks(np.asarray(keep, bool), p.shape)
     except ValueError:
         return False
     b1, b2 = float(betas[0]), float(betas[1])

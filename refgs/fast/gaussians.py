@@ -23,6 +23,7 @@ import math
 import numpy as np
 from numba import njit
 
+from .kernels import G_A, G_B, G_BL, G_C, G_G, G_MX, G_MY, G_O, G_R, G_Z
 from ..constants import (ALPHA_MIN, SH_C0, SH_C1, SH_C2, SH_C3, SH_COLOR_OFFSET, TILE_SIZE,
                          Profile)
 
@@ -416,14 +417,15 @@ def gaussians_forward(lo, hi, means, log_scales, quats, logits, oscale, sh, w2c,
 @njit(cache=True, nogil=True, error_model="numpy")
 def gaussians_backward(lo, hi, means, log_scales, quats, logits, oscale, sh, w2c, cst, flags,
                        campos, conics, comp, o_sig, clamped, visible,
-                       v_means2d, v_conics, v_opac, v_colors, v_depths,
-                       out_means, out_log_scales, out_quats, out_logits, out_sh):
+                       per_g, out_means, out_log_scales, out_quats, out_logits, out_sh):
     """Backward of :func:`gaussians_forward` (COV-02, PRJ-07, PRJ-08, SH-04, CNV-07), Gaussians [lo, hi).
 
-    v_means2d (N,2), v_conics (N,3) (off-diagonal counted once, RAS-08), v_opac (N,) w.r.t. the
-    opacity actually used, v_colors (N,3), v_depths (N,): the per-Gaussian sums of the compositing
-    backward.  campos (3,) in D.  Writes dL/d(raw parameters) into out_* (zero rows for culled
-    Gaussians, zero SH coefficients above the active degree).  Mirrors refgs.render.render_backward.
+    per_g (N, 10): the per-Gaussian sums of the compositing backward, columns
+    refgs.fast.kernels.G_* -- dL/d 2D mean, conic (off-diagonal counted once, RAS-08), opacity
+    actually used, colour, depth.  campos (3,) in D.  Writes dL/d(raw parameters) into out_* (zero
+    rows for culled Gaussians, zero SH coefficients above the active degree), each entry stored
+    once, so output arrays of a lower precision than the stage's round once.  Mirrors
+    refgs.render.render_backward.
     """
     deg = flags[F_DEGREE]
     nb = (deg + 1) * (deg + 1)
@@ -448,20 +450,20 @@ def gaussians_backward(lo, hi, means, log_scales, quats, logits, oscale, sh, w2c
     vM = np.empty((3, 3), means.dtype)
     vR = np.empty((3, 3), means.dtype)
     for g in range(lo, hi):
-        for k in range(out_sh.shape[1]):
+        for k in range(nb if visible[g] else 0, out_sh.shape[1]):    # the rest written below
             for ch in range(3):
                 out_sh[g, k, ch] = zero
-        for j in range(3):
-            out_means[g, j] = zero
-            out_log_scales[g, j] = zero
-        for j in range(4):
-            out_quats[g, j] = zero
-        out_logits[g] = zero
         if not visible[g]:
+            for j in range(3):
+                out_means[g, j] = zero
+                out_log_scales[g, j] = zero
+            for j in range(4):
+                out_quats[g, j] = zero
+            out_logits[g] = zero
             continue
         # opacity = sigmoid(logit) * scale * comp
         os_, sc, cp = o_sig[g], oscale[g], comp[g]
-        vo = v_opac[g]
+        vo = per_g[g, G_O]
         v_osig = vo * sc * cp
         v_comp = vo * os_ * sc
         out_logits[g] = v_osig * os_ * (one - os_)
@@ -474,9 +476,9 @@ def gaussians_backward(lo, hi, means, log_scales, quats, logits, oscale, sh, w2c
             dist = one
         x, y, z = dx / dist, dy / dist, dz / dist
         _sh_basis(x, y, z, deg, basis, cst)
-        gc0 = zero if clamped[g, 0] else v_colors[g, 0]
-        gc1 = zero if clamped[g, 1] else v_colors[g, 1]
-        gc2 = zero if clamped[g, 2] else v_colors[g, 2]
+        gc0 = zero if clamped[g, 0] else per_g[g, G_R]
+        gc1 = zero if clamped[g, 1] else per_g[g, G_G]
+        gc2 = zero if clamped[g, 2] else per_g[g, G_BL]
         for k in range(nb):
             out_sh[g, k, 0] = basis[k] * gc0
             out_sh[g, k, 1] = basis[k] * gc1
@@ -494,7 +496,7 @@ def gaussians_backward(lo, hi, means, log_scales, quats, logits, oscale, sh, w2c
         # conic -> dilated 2D covariance: Q = Sigma2D^-1, dQ = -Q dSigma Q with b counted once
         # (no division by det^2, which overflows for huge splats), as refgs.projection
         A, B, C = conics[g, 0], conics[g, 1], conics[g, 2]
-        vA, vB, vC = v_conics[g, 0], v_conics[g, 1], v_conics[g, 2]
+        vA, vB, vC = per_g[g, G_A], per_g[g, G_B], per_g[g, G_C]
         va = -(A * A * vA + A * B * vB + B * B * vC)
         vbb = -(two * A * B * vA + (A * C + B * B) * vB + two * B * C * vC)
         vc = -(B * B * vA + B * C * vB + C * C * vC)
@@ -538,16 +540,16 @@ def gaussians_backward(lo, hi, means, log_scales, quats, logits, oscale, sh, w2c
         if not cly:
             v_ty += v_v / tz
             v_tz += -v_v * t[1] / tz2
-        vm0, vm1 = v_means2d[g, 0], v_means2d[g, 1]
+        vm0, vm1 = per_g[g, G_MX], per_g[g, G_MY]
         v_tx += fx / tz * vm0
         v_ty += fy / tz * vm1
         v_tz += -fx * t[0] / tz2 * vm0 - fy * t[1] / tz2 * vm1
-        v_tz += v_depths[g]
-        for j in range(3):                                   # t = Rw mean + tw
-            out_means[g, j] = (v_tx * w2c[0, j] + v_ty * w2c[1, j] + v_tz * w2c[2, j])
-        out_means[g, 0] += vsx
-        out_means[g, 1] += vsy
-        out_means[g, 2] += vsz
+        v_tz += per_g[g, G_Z]
+        # t = Rw mean + tw, plus the view direction's part (each output stored once: an output
+        # array of a lower precision then rounds once, as a cast of the result would)
+        out_means[g, 0] = (v_tx * w2c[0, 0] + v_ty * w2c[1, 0] + v_tz * w2c[2, 0]) + vsx
+        out_means[g, 1] = (v_tx * w2c[0, 1] + v_ty * w2c[1, 1] + v_tz * w2c[2, 1]) + vsy
+        out_means[g, 2] = (v_tx * w2c[0, 2] + v_ty * w2c[1, 2] + v_tz * w2c[2, 2]) + vsz
         # COV-02: Sigma = M M^T, M = R diag(s)
         for i in range(3):
             for j in range(3):

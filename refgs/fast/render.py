@@ -32,13 +32,14 @@ from concurrent.futures import ThreadPoolExecutor
 import numba
 import numpy as np
 
-from ..constants import ALPHA_MIN, T_MIN, TILE_SIZE
+from ..constants import ALPHA_MIN, T_MIN
 from ..projection import frustum_limits
 from ..rasterize import tile_grid
-from ..render import _check_cotangent, _fail, resolve_profile, validate_inputs
+from ..render import resolve_profile, validate_inputs
 from ..types import Gradients, RenderConfig, RenderOutput
 from . import gaussians as gk
 from . import kernels as rk
+from . import tiles as tl
 
 #: marker stored in RenderOutput.cache by :func:`render` (what :func:`render_backward` accepts)
 CACHE_TAG = "refgs.fast"
@@ -46,8 +47,6 @@ CACHE_TAG = "refgs.fast"
 CHUNKS_PER_THREAD = 8
 #: Gaussians per chunk at least (the per-Gaussian kernels are cheap per item)
 MIN_GAUSSIAN_CHUNK = 2048
-#: visible Gaussians below which the depth sort runs in one thread (splitting costs more)
-MIN_PARALLEL_SORT = 16384
 #: precision choices of the per-Gaussian stage (covariance, projection, SH, culls, radii, tile
 #: rectangles, depths and so the depth order) for float32 Gaussians: "input" (default, CNV-11:
 #: everything in the Gaussians' dtype, a model of a float32 GPU backend) or "float64" (an
@@ -93,51 +92,44 @@ def parallel_bands(kernel, n_items: int, *args) -> None:
 
 def depth_order(idx, depths) -> np.ndarray:
     """``idx[np.argsort(depths[idx], kind="stable")]`` (RAS-02: by depth, ties by index; idx
-    ascending), with the sort split over the threads: each thread sorts a contiguous part of idx
-    stably (numpy releases the GIL while sorting), then the sorted parts are merged, earlier
-    part first on ties (:func:`refgs.fast.kernels.merge_runs`) -- the same order."""
+    ascending).  Finite depths are sorted by refgs.fast.tiles.radix_argsort on their bits, turned
+    into unsigned integers of the same order (sign bit flipped for positive numbers, every bit for
+    negative ones; -0 taken as +0): the same stable order as numpy's, in O(n) (numpy's stable
+    sort of floats is a merge sort).  Non-finite depths: numpy's argsort."""
     keys = depths[idx]
-    n_threads = max(1, int(numba.get_num_threads()))
-    if n_threads == 1 or idx.size < MIN_PARALLEL_SORT or not np.all(np.isfinite(keys)):
+    if keys.dtype not in (np.float32, np.float64) or not np.all(np.isfinite(keys)):
         return idx[np.argsort(keys, kind="stable")]
-    bounds = np.linspace(0, idx.size, n_threads + 1).astype(np.int64)
-    runs = [(lo, hi) for lo, hi in zip(bounds[:-1], bounds[1:])]
-    parts = list(_executor(n_threads).map(
-        lambda b: b[0] + np.argsort(keys[b[0]:b[1]], kind="stable"), runs))
-    while len(parts) > 1:                       # merge neighbours: earlier part first on ties
-        merged = []
-        for k in range(0, len(parts) - 1, 2):
-            out = np.empty(parts[k].size + parts[k + 1].size, np.int64)
-            rk.merge_runs(keys, parts[k], parts[k + 1], out)
-            merged.append(out)
-        if len(parts) % 2:
-            merged.append(parts[-1])
-        parts = merged
-    return idx[parts[0]]
+    keys = keys + keys.dtype.type(0)                    # -0 -> +0: equal depths, equal keys
+    nbits = 8 * keys.itemsize
+    bits = keys.view(np.int32 if nbits == 32 else np.int64).astype(np.int64)
+    sign = np.int64(1) << (nbits - 1)
+    low = (np.int64(1) << nbits) - 1 if nbits < 64 else np.int64(-1)
+    sortable = np.where(bits & sign, ~bits, bits | sign) & low
+    return idx[tl.radix_argsort(sortable, nbits)]
 
 
 def _every_intersection(order, rect):
     """(rect_off, live) of the full lists: every tile of every rectangle live."""
     rect_off = np.empty(order.size + 1, np.int64)
-    rk.rect_offsets(order, rect, rect_off)
+    tl.rect_offsets(order, rect, rect_off)
     return rect_off, np.ones(int(rect_off[-1]), np.bool_)
 
 
 def live_intersections(order, rect, means2d, conics, opac, eps: float, screen: bool = True):
     """(rect_off (V+1,) int64, live (P_full,) bool): for each visible Gaussian order[k] and each
     tile of its rectangle (row-major, from rect_off[k]) whether the screen may keep it in some
-    pixel row there (refgs.fast.kernels.tile_alive, conservative, per Gaussian on the threads);
+    pixel row there (refgs.fast.tiles.tile_alive, conservative, per Gaussian on the threads);
     all True without the screen (``screen=False``: the spec's full lists)."""
     rect_off, live = _every_intersection(order, rect)
     if not screen:
         return rect_off, live
-    parallel_for(rk.tile_alive, order.size, order, rect, rect_off, means2d, conics, opac,
+    parallel_for(tl.tile_alive, order.size, order, rect, rect_off, means2d, conics, opac,
                  float(eps), live, min_chunk=MIN_GAUSSIAN_CHUNK // 8)
     return rect_off, live
 
 
 def build_tile_lists(order, rect, gx: int, gy: int, rect_off=None, live=None):
-    """refgs.fast.kernels.build_tile_lists (RAS-01, RAS-02) with both passes split into bands of
+    """refgs.fast.tiles.build_tile_lists (RAS-01, RAS-02) with both passes split into bands of
     tile rows over the threads; each band takes the Gaussians in ``order``, so the lists are the
     same as the sequential ones.  ``rect_off``/``live`` from :func:`live_intersections` (default:
     every intersection, the full lists).  Returns (gauss (P,) int64, offsets (gx gy + 1,) int64,
@@ -145,15 +137,31 @@ def build_tile_lists(order, rect, gx: int, gy: int, rect_off=None, live=None):
     if live is None:
         rect_off, live = _every_intersection(order, rect)
     counts = np.zeros(gx * gy, np.int64)
-    parallel_bands(rk.tile_counts, gy, order, rect, rect_off, live, gx, counts)
+    parallel_bands(tl.tile_counts, gy, order, rect, rect_off, live, gx, counts)
     offsets = np.zeros(gx * gy + 1, np.int64)
     np.cumsum(counts, out=offsets[1:])
     cursor = offsets[:-1].copy()
     full = np.zeros(gx * gy, np.int64)
     gauss = np.empty(int(offsets[-1]), np.int64)
     pos = np.empty(int(offsets[-1]), np.int32)
-    parallel_bands(rk.tile_fill, gy, order, rect, rect_off, live, gx, cursor, full, gauss, pos)
+    parallel_bands(tl.tile_fill, gy, order, rect, rect_off, live, gx, cursor, full, gauss, pos)
     return gauss, offsets, pos
+
+
+def input_error(field: str, expected: str, got) -> None:
+    """ValueError naming ``field`` and what was expected (the reference's message form)."""
+    raise ValueError(f"{field}: expected {expected}, got {got}")
+
+
+def check_cotangent(name: str, v, shape, dt):
+    """None, or ``v`` as a finite array of ``shape`` in ``dt`` (ValueError naming ``name``
+    otherwise; the checks of refgs.render.render_backward)."""
+    if v is None:
+        return None
+    v = np.asarray(v)
+    if v.shape != shape or not np.all(np.isfinite(v)):
+        input_error(name, f"finite values of shape {shape}", v.shape)
+    return v.astype(dt, copy=False)
 
 
 def _c(a, dt):
@@ -173,14 +181,14 @@ def render(gaussians, camera, config: RenderConfig | None = None, *,
 
     The ``cache`` holds what :func:`render_backward` needs (compiled-kernel inputs, tile lists).
     ``screen=False`` switches off the conservative per-row candidate screen of
-    refgs.fast.kernels (every pixel x list-slot pair evaluated; bit-identical results, slower;
+    refgs.fast.tiles (every pixel x list-slot pair evaluated; bit-identical results, slower;
     for tests).  ``geometry``: one of GEOMETRY_PRECISIONS, the precision of the per-Gaussian
     stage for float32 Gaussians (outputs are float32 either way).
     """
     config = RenderConfig() if config is None else config
     validate_inputs(gaussians, camera, config)
     if geometry not in GEOMETRY_PRECISIONS:
-        _fail("geometry", f"one of {GEOMETRY_PRECISIONS}", geometry)
+        input_error("geometry", f"one of {GEOMETRY_PRECISIONS}", geometry)
     profile = resolve_profile(config)
     g = gaussians
     out_dt = g.means.dtype                      # compositing and outputs
@@ -189,7 +197,10 @@ def render(gaussians, camera, config: RenderConfig | None = None, *,
     W, H = int(camera.width), int(camera.height)
     deg = config.active_sh_degree(g.sh.shape[1])
     means, log_scales, quats = _c(g.means, dt), _c(g.log_scales, dt), _c(g.quats, dt)
-    logits, sh = _c(g.opacity_logits, dt), _c(g.sh, dt)
+    # SH coefficients (48 of a Gaussian's 59 numbers) stay in the Gaussians' dtype: the kernels
+    # multiply them by per-Gaussian values of the stage's dtype, so a float32 coefficient enters
+    # float64 arithmetic exactly as its cast would, without a float64 copy of the array
+    logits, sh = _c(g.opacity_logits, dt), _c(g.sh, out_dt)
     oscale = np.ones(n, dt) if config.opacity_scale is None else _c(config.opacity_scale, dt)
     w2c = _c(camera.world_to_camera, dt)
     campos = camera.center.astype(dt)
@@ -209,7 +220,7 @@ def render(gaussians, camera, config: RenderConfig | None = None, *,
 
     conics_g = conics                              # the per-Gaussian stage's, for the backward
     # the compositing kernels read the 2D means in the geometry's precision: a float64 mean is
-    # carried there as float32 value + float32 residual (refgs.fast.kernels._gather), so pixel
+    # carried there as float32 value + float32 residual (refgs.fast.tiles.gather), so pixel
     # offsets keep float64's position (docs/fast.md, "Mixed precision")
     means2d_c = means2d
     if out_dt != dt:                               # float32 compositing of float64 geometry
@@ -218,7 +229,7 @@ def render(gaussians, camera, config: RenderConfig | None = None, *,
     dt = out_dt
     eps = float(np.finfo(dt).eps)
     # the tile lists keep only the Gaussians the screen keeps in some row of a tile (live
-    # intersections; module docstring of refgs.fast.kernels), n_contrib still counts full lists
+    # intersections; module docstring of refgs.fast.tiles), n_contrib still counts full lists
     rect_off, live = live_intersections(order, rect, means2d_c, conics, opac, eps, screen)
     gauss, offsets, pos = build_tile_lists(order, rect, gx, gy, rect_off, live)
     bg = np.asarray(config.background, dt)
@@ -226,15 +237,15 @@ def render(gaussians, camera, config: RenderConfig | None = None, *,
     image = np.empty((H, W, 3), dt)
     alpha, depth, final_T = np.empty((H, W), dt), np.empty((H, W), dt), np.empty((H, W), dt)
     n_contrib, last = np.empty((H, W), np.int32), np.empty((H, W), np.int32)
-    row_cnt = np.zeros((gx * gy, TILE_SIZE), np.int64)
-    row_slots = np.empty(TILE_SIZE * gauss.size, np.int32)
-    parallel_for(rk.composite_forward, gx * gy, gauss, offsets, pos, means2d_c, conics, opac, colors,
+    row_mask = np.empty(gauss.size, np.int64)
+    forward = rk.COMPOSITING_KERNELS[np.dtype(dt)][0]
+    parallel_for(forward, gx * gy, gauss, offsets, pos, means2d_c, conics, opac, colors,
                  depths, bg, rc, eps, bool(profile.stop_inclusive), bool(screen), gx, image, alpha,
-                 depth, n_contrib, last, final_T, row_cnt, row_slots)
+                 depth, n_contrib, last, final_T, row_mask)
     cache = {"tag": CACHE_TAG, "profile": profile, "sh_degree": deg,
              "lists": {"gauss": gauss, "offsets": offsets, "pos": pos,
                        "full_size": int(live.size)},
-             "tile_rect": rect, "last": last, "rows": (row_cnt, row_slots),
+             "tile_rect": rect, "last": last, "row_mask": row_mask,
              "arrays": (means, log_scales, quats, logits, oscale, sh, w2c, campos),
              "cst": cst, "flags": flags, "rc": rc, "bg": bg, "screen": bool(screen),
              "comp": comp, "o_sig": o_sig, "clamped": clamped, "scale": oscale,
@@ -252,15 +263,15 @@ def render_backward(out: RenderOutput, v_image, v_alpha=None, v_depth=None) -> G
     dtype of ``out`` (means2d = dL/d 2D mean in pixels; culled Gaussians get zero rows).
     """
     if not isinstance(out, RenderOutput) or out.cache.get("tag") != CACHE_TAG:
-        _fail("out", "the RenderOutput of refgs.fast.render", type(out).__name__)
+        input_error("out", "the RenderOutput of refgs.fast.render", type(out).__name__)
     c = out.cache
     dt = out.image.dtype
     H, W = out.alpha.shape
-    v_image = _check_cotangent("v_image", v_image, (H, W, 3), dt)
+    v_image = check_cotangent("v_image", v_image, (H, W, 3), dt)
     if v_image is None:
-        _fail("v_image", f"an array of shape {(H, W, 3)}", None)
-    v_alpha = _check_cotangent("v_alpha", v_alpha, (H, W), dt)
-    v_depth = _check_cotangent("v_depth", v_depth, (H, W), dt)
+        input_error("v_image", f"an array of shape {(H, W, 3)}", None)
+    v_alpha = check_cotangent("v_alpha", v_alpha, (H, W), dt)
+    v_depth = check_cotangent("v_depth", v_depth, (H, W), dt)
     v_alpha = np.zeros((H, W), dt) if v_alpha is None else _c(v_alpha, dt)
     v_depth = np.zeros((H, W), dt) if v_depth is None else _c(v_depth, dt)
     v_image = _c(v_image, dt)
@@ -270,27 +281,22 @@ def render_backward(out: RenderOutput, v_image, v_alpha=None, v_depth=None) -> G
     n = out.means2d.shape[0]
 
     contrib = np.empty((gauss.size, rk.N_GRAD_COLUMNS), dt)
-    parallel_for(rk.composite_backward, gx * gy, gauss, offsets, c["means2d_compositing"], out.conics,
+    backward = rk.COMPOSITING_KERNELS[np.dtype(dt)][1]
+    parallel_for(backward, gx * gy, gauss, offsets, c["means2d_compositing"], out.conics,
                  out.opacities, out.colors, out.depths, c["bg"], c["rc"],
                  bool(profile.grad_through_alpha_cap), gx, c["last"], out.final_T,
-                 v_image, v_alpha, v_depth, *c["rows"], contrib)
+                 v_image, v_alpha, v_depth, c["row_mask"], contrib)
     means, log_scales, quats, logits, oscale, sh, w2c, campos = c["arrays"]
     gdt = means.dtype                       # the per-Gaussian stage's precision (render geometry)
-    per_g = np.zeros((n, rk.N_GRAD_COLUMNS), gdt)
-    parallel_bands(rk.reduce_by_gaussian, n, gauss, contrib, per_g)
-
-    v_means2d = np.where(out.visible[:, None], per_g[:, rk.G_MX:rk.G_MY + 1], 0).astype(gdt)
-    v_conics = np.ascontiguousarray(per_g[:, rk.G_A:rk.G_C + 1])
-    v_opac = np.ascontiguousarray(per_g[:, rk.G_O])
-    v_colors = np.ascontiguousarray(per_g[:, rk.G_R:rk.G_BL + 1])
-    v_depths = np.ascontiguousarray(per_g[:, rk.G_Z])
-    o_means, o_ls = np.empty((n, 3), gdt), np.empty((n, 3), gdt)
-    o_quats, o_logits, o_sh = np.empty((n, 4), gdt), np.empty(n, gdt), np.empty(sh.shape, gdt)
+    per_g = np.empty((n, rk.N_GRAD_COLUMNS), gdt)
+    parallel_bands(rk.reduce_by_gaussian, n, gauss, contrib, per_g)   # culled rows stay 0
+    # the gradients in the output dtype directly (each entry stored once by the kernel, so a
+    # float32 output of float64 geometry is rounded once, as a cast of the float64 result)
+    o_means, o_ls, o_quats = np.empty((n, 3), dt), np.empty((n, 3), dt), np.empty((n, 4), dt)
+    o_logits, o_sh = np.empty(n, dt), np.empty(sh.shape, dt)
     parallel_for(gk.gaussians_backward, n, means, log_scales, quats, logits, oscale, sh, w2c,
                  c["cst"], c["flags"], campos, c["conics_geometry"], c["comp"], c["o_sig"],
-                 c["clamped"], out.visible, v_means2d, v_conics, v_opac, v_colors, v_depths,
-                 o_means, o_ls, o_quats, o_logits, o_sh, min_chunk=MIN_GAUSSIAN_CHUNK)
-    return Gradients(means=o_means.astype(dt, copy=False), log_scales=o_ls.astype(dt, copy=False),
-                     quats=o_quats.astype(dt, copy=False),
-                     opacity_logits=o_logits.astype(dt, copy=False),
-                     sh=o_sh.astype(dt, copy=False), means2d=v_means2d.astype(dt, copy=False))
+                 c["clamped"], out.visible, per_g, o_means, o_ls, o_quats, o_logits, o_sh,
+                 min_chunk=MIN_GAUSSIAN_CHUNK)
+    return Gradients(means=o_means, log_scales=o_ls, quats=o_quats, opacity_logits=o_logits,
+                     sh=o_sh, means2d=per_g[:, rk.G_MX:rk.G_MY + 1].astype(dt))

@@ -207,7 +207,8 @@ def _image_pair(img, gt) -> tuple[np.ndarray, np.ndarray, tuple]:
         raise ValueError(f"ssim_and_grad: img and gt must have the same shape, got {a.shape} "
                          f"and {b.shape}")
     if a.ndim not in (2, 3) or a.size == 0:
-        raise ValueError(f"ssim_and_grad: expected images of shape (H, W) or (H, W, C), got {a.shape}")
+        raise ValueError(f"ssim_and_grad: expected images of shape (H, W) or (H, W, C), "
+                         f"got {a.shape}")
     a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
     if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
         raise ValueError("ssim_and_grad: img and gt must contain only finite values")

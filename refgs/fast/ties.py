@@ -31,6 +31,7 @@ from ..projection import frustum_limits
 from ..rasterize import tile_grid
 from ..sh import eval_sh_colors
 from . import kernels as rk
+from . import tiles as tl
 
 
 @dataclass(frozen=True)
@@ -60,8 +61,8 @@ def _pixel_distances(lo, hi, gauss, offsets, means2d, conics, opac, colors, dept
     relative gap of consecutive valid depths, and whether a ``gtie`` Gaussian is valid there."""
     H, W = d_alpha.shape
     one, t_min, cap, amin = rc[rk.R_ONE], rc[rk.R_T_MIN], rc[rk.R_CAP], rc[rk.R_ALPHA_MIN]
-    Lm = rk._max_len(offsets, lo, hi)
-    tab = np.empty((Lm, rk.N_TAB), means2d.dtype)
+    Lm = tl.max_len(offsets, lo, hi)
+    tab = np.empty((Lm, tl.N_TAB), means2d.dtype)
     cnt = np.empty(TILE_SIZE, np.int64)
     rs = np.empty((TILE_SIZE, Lm), np.int32)
     col_lo = np.empty((TILE_SIZE, Lm), np.int8)
@@ -71,10 +72,10 @@ def _pixel_distances(lo, hi, gauss, offsets, means2d, conics, opac, colors, dept
         L = offsets[tile + 1] - start
         ty = tile // gx
         tx = tile - ty * gx
-        rk._gather(gauss, start, L, means2d, conics, opac, colors, depths, tab)
-        xs = rk._centres(tx * TILE_SIZE, tab)
-        ys = rk._centres(ty * TILE_SIZE, tab)
-        rk._chords(tab, L, xs, ys, eps, True, cnt, rs, col_lo, col_hi)
+        tl.gather(gauss, start, L, means2d, conics, opac, colors, depths, tab)
+        xs = tl.centres(tx * TILE_SIZE, tab)
+        ys = tl.centres(ty * TILE_SIZE, tab)
+        tl.chords(tab, L, xs, ys, eps, True, cnt, rs, col_lo, col_hi)
         for r in range(TILE_SIZE):
             i = ty * TILE_SIZE + r
             if i >= H:
@@ -97,8 +98,8 @@ def _pixel_distances(lo, hi, gauss, offsets, means2d, conics, opac, colors, dept
                     s = rs[r, k]
                     dx = (tab[s, 0] - xs[c]) + tab[s, 10]
                     dy = (tab[s, 1] - ys[r]) + tab[s, 11]
-                    power = rk._power(tab[s, 2], tab[s, 3], tab[s, 4] * dy * dy, dx, dy,
-                                      rc[rk.R_NEG_HALF])
+                    power = tl.gaussian_power(tab[s, 2], tab[s, 3], tab[s, 4] * dy * dy, dx, dy,
+                                              rc[rk.R_NEG_HALF])
                     if power > 0.0:
                         continue
                     oG = tab[s, 5] * math.exp(power)

@@ -49,10 +49,8 @@ def watch_parent(parent_pid: int) -> None:
     threading.Thread(target=watch, name="refgs-watch-parent", daemon=True).start()
 
 
-def _outcome(run, state: str, error: str | None = None, wall_s: float = 0.0,
-             metrics: dict | None = None, note: str = "") -> dict:
-    return {"name": run.name, "index": run.index, "state": state, "error": error,
-            "wall_s": round(wall_s, 3), "host": host(), "metrics": metrics, "note": note}
+def _outcome(run, state: str, error: str | None = None) -> dict:
+    return {"name": run.name, "index": run.index, "state": state, "error": error}
 
 
 def _summary(folder: Path) -> dict:
@@ -61,8 +59,9 @@ def _summary(folder: Path) -> dict:
 
 
 def execute_run(grid, out: str | os.PathLike, run, progress: bool = False) -> dict:
-    """Run ``run`` (a GridRun of ``grid``) in the output folder ``out``; the outcome (module
-    docstring).  Waits while another process holds the run."""
+    """Run ``run`` (a GridRun of ``grid``) in the output folder ``out``; its outcome (name,
+    index, state done or failed, error).  Waits while another process holds the run; raises
+    runs.Interrupted (state pending) when stopped by SIGINT / SIGTERM."""
     out = Path(out).absolute()
     out.mkdir(parents=True, exist_ok=True)
     manifest = Manifest(out)
@@ -83,12 +82,13 @@ def _execute_locked(grid, out: Path, manifest: Manifest, run, progress: bool) ->
     if state == "done":
         if entry.get("state") != "done":
             manifest.set_run(run.name, state="done", error=None, metrics=_summary(folder))
-        return _outcome(run, "done", metrics=_summary(folder), note="already done")
+        return _outcome(run, "done")
     if state == "changed":
         manifest.set_run(run.name, state="failed", error=why, refused=True, finished=now())
         return _outcome(run, "failed", why)
     manifest.set_run(run.name, state="running", error=None, host=host(), pid=os.getpid(),
-                     started=now(), finished=None, attempts=entry.get("attempts", 0) + 1)
+                     started=now(), finished=None, attempts=entry.get("attempts", 0) + 1,
+                     resumed=state == "resumable")
     t0 = time.perf_counter()
     total = lambda: entry.get("wall_s", 0.0) + time.perf_counter() - t0  # noqa: E731
     try:
@@ -100,23 +100,18 @@ def _execute_locked(grid, out: Path, manifest: Manifest, run, progress: bool) ->
             runs.train(run.cfg, folder, progress=progress,
                        command=["refgs", "run-one", str(grid.path),
                                 "--out", str(out), "--name", run.name])
-    except runs.Interrupted as exc:
-        manifest.set_run(run.name, state="pending", error=None, wall_s=round(total(), 3),
-                         finished=now())
-        raise exc
-    except (KeyboardInterrupt, SystemExit):
+    except (runs.Interrupted, KeyboardInterrupt, SystemExit):     # it checkpointed: resumable
         manifest.set_run(run.name, state="pending", wall_s=round(total(), 3), finished=now())
         raise
     except Exception as exc:                                    # noqa: BLE001 (stays local)
         error = one_line(f"{type(exc).__name__}: {exc}")
         manifest.set_run(run.name, state="failed", error=error, refused=False,
                          wall_s=round(total(), 3), finished=now())
-        return _outcome(run, "failed", error, time.perf_counter() - t0)
+        return _outcome(run, "failed", error)
     metrics = _summary(folder)
     manifest.set_run(run.name, state="done", error=None, wall_s=round(total(), 3),
                      finished=now(), metrics=metrics)
-    return _outcome(run, "done", wall_s=time.perf_counter() - t0, metrics=metrics,
-                    note="resumed" if state == "resumable" else "")
+    return _outcome(run, "done")
 
 
 __all__ = ["execute_run", "thread_environment", "watch_parent", "THREAD_VARIABLES"]

@@ -112,25 +112,27 @@ def _launch(grid, out: Path, run, env: dict, workers: Workers) -> dict:
                              env=env)
     if status is None:
         return {"name": run.name, "index": run.index, "state": "pending", "error": None}
-    return _settle(out, run, status, log)
+    return _settle(out, run, _death(status, log))
 
 
-def _settle(out: Path, run, status, log: Path | None, error: str | None = None) -> dict:
-    """The outcome of a worker that has ended, from the manifest; a run its worker left running
-    (the worker died) is marked failed with ``error`` or the exit status and the log's last line."""
+def _settle(out: Path, run, died: str | None = None) -> dict:
+    """The outcome of a run whose worker has ended, from the manifest.  ``died``: why the worker
+    ended abnormally; a run it left unfinished (neither done nor failed) is then marked failed."""
     manifest = Manifest(out)
     entry = manifest.read()["runs"].get(run.name, {})
-    state = entry.get("state")
-    if state not in ("done", "failed") and not (state == "pending" and status == EXIT_INTERRUPTED):
-        if error is None:
-            why = (f"killed by signal {-status}" if isinstance(status, int) and status < 0
-                   else f"exited with status {status}")
-            error = f"worker {why}" + (f": {_last_line(log)}" if log and _last_line(log) else "")
-        entry = manifest.set_run(run.name, state="failed", error=one_line(error),
+    if died is not None and entry.get("state") not in ("done", "failed"):
+        entry = manifest.set_run(run.name, state="failed", error=one_line(died),
                                  refused=False)["runs"][run.name]
-        state = "failed"
-    return {"name": run.name, "index": run.index, "state": state, "error": entry.get("error"),
-            "wall_s": entry.get("wall_s"), "host": entry.get("host"), "metrics": entry.get("metrics")}
+    return {"name": run.name, "index": run.index, **entry}
+
+
+def _death(status: int, log: Path) -> str | None:
+    """Why a worker process with exit status ``status`` ended abnormally (None: it did not)."""
+    if status in (0, EXIT_INTERRUPTED):
+        return None
+    why = f"killed by signal {-status}" if status < 0 else f"exited with status {status}"
+    last = _last_line(log)
+    return f"worker {why}" + (f": {last}" if last else "")
 
 
 def run_local(grid, out: Path, todo: list, workers: int, threads: int):
@@ -159,7 +161,7 @@ def ray_task(grid_path: str, out: str, name: str) -> dict:
     with open(log, "a") as fh, contextlib.redirect_stdout(fh), contextlib.redirect_stderr(fh):
         try:
             return execute_run(grid, out, run)
-        except runs.Interrupted:
+        except runs.Interrupted:                 # stopped by SIGTERM: pending, resumable
             return {"name": name, "index": run.index, "state": "pending", "error": None}
 
 
@@ -168,7 +170,8 @@ def run_ray(grid, out: Path, todo: list, workers: int, threads: int):
     try:
         import ray
     except ImportError:
-        raise ConfigError("--executor ray: ray is not installed (pip install 'refgs[ray]')") from None
+        raise ConfigError("--executor ray: ray is not installed (pip install 'refgs[ray]')"
+                          ) from None
     address = os.environ.get("RAY_ADDRESS")
     started = not ray.is_initialized()
     if started:
@@ -186,12 +189,13 @@ def run_ray(grid, out: Path, todo: list, workers: int, threads: int):
             for ref in ready:
                 run = refs.pop(ref)
                 try:
-                    yield ray.get(ref)
-                except ray.exceptions.RayError as exc:
+                    ray.get(ref)
+                    died = None
+                except ray.exceptions.RayError as exc:      # a lost worker, retries spent
                     cause = getattr(exc, "cause", None) or exc
                     text = str(cause).strip().splitlines()
-                    yield _settle(out, run, None, None,
-                                  f"{type(cause).__name__}: {text[0] if text else ''}")
+                    died = f"{type(cause).__name__}: {text[0] if text else ''}"
+                yield _settle(out, run, died)
     finally:
         for ref in refs:
             ray.cancel(ref, force=True)
@@ -205,14 +209,16 @@ def _line(outcome: dict, k: int, n: int) -> str:
     head = f"[{k}/{n}] {outcome['state']:<7} {outcome['name']}"
     if outcome["state"] == "done":
         psnr = f"  PSNR {m['psnr']:.2f} dB" if m.get("psnr") is not None else ""
-        return f"{head}  {outcome.get('wall_s') or 0:.0f} s{psnr}  ({outcome.get('host')})"
+        return (f"{head}  {outcome.get('wall_s') or 0:.0f} s{psnr}  ({outcome.get('host')}"
+                + (", resumed)" if outcome.get("resumed") else ")"))
     if outcome["state"] == "pending":
         return f"{head}  interrupted; resumes from its checkpoint"
     return f"{head}  {outcome.get('error')}"
 
 
 def sweep(grid, out: str | os.PathLike, executor: str = "local", workers: int | None = None,
-          threads: int = DEFAULT_THREADS, retry_failed: bool = False, progress: bool = True) -> dict:
+          threads: int = DEFAULT_THREADS, retry_failed: bool = False,
+          progress: bool = True) -> dict:
     """Run every run of ``grid`` that is not done into ``out``; the final manifest."""
     from tqdm import tqdm
 
@@ -252,9 +258,10 @@ def sweep(grid, out: str | os.PathLike, executor: str = "local", workers: int | 
 def report(data: dict, out: Path, grid_path: Path) -> list[str]:
     """The closing lines: the counts, and every run that is not done with its error."""
     c = counts(data)
+    unfinished = c["pending"] + c["running"]
     lines = [f"{c['done']} of {len(data['runs'])} runs done"
              + (f", {c['failed']} failed" if c["failed"] else "")
-             + (f", {c['pending'] + c['running']} not finished" if c["pending"] + c["running"] else "")]
+             + (f", {unfinished} not finished" if unfinished else "")]
     for name, e in data["runs"].items():
         if e["state"] == "failed":
             lines.append(f"  failed   {name}: {e.get('error')}  (log: {log_path(out, name)})")

@@ -118,9 +118,7 @@ def _read_toml(path: Path) -> dict:
     try:
         with open(path, "rb") as fh:
             return tomllib.load(fh)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML ({exc})") from None
-    except UnicodeDecodeError as exc:
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{path}: not valid TOML ({exc})") from None
 
 
@@ -162,6 +160,8 @@ def _check_table(path: Path, where: str, table: dict, parser: OptionParser) -> d
                 _tokens(parser, key, v)
             except ConfigError as exc:
                 raise ConfigError(f"{at}: {exc}") from None
+            if key in PATH_KEYS and not isinstance(v, str):
+                raise ConfigError(f"{at}: expected a path (a string), got {v!r}")
             if key == "backend" and v not in available_backends() and ":" not in v:
                 raise ConfigError(f"{at}: expected one of {', '.join(available_backends())} or "
                                   f"module:object, got {v!r}")

@@ -216,6 +216,6 @@ def host() -> str:
     return socket.gethostname()
 
 
-__all__ = ["Manifest", "current", "disk_state", "partial_folders", "file_lock", "is_locked", "lock_path",
-           "log_path", "counts", "host", "now", "one_line", "MANIFEST_FILE", "HIDDEN_DIR",
-           "STATES"]
+__all__ = ["Manifest", "current", "disk_state", "partial_folders", "file_lock", "is_locked",
+           "lock_path", "log_path", "counts", "host", "now", "one_line", "MANIFEST_FILE",
+           "HIDDEN_DIR", "STATES"]

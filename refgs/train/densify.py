@@ -121,12 +121,14 @@ class DensifyStats:
         radii = np.asarray(radii)
         r = np.maximum(radii[:, 0], radii[:, 1])     # = max(axis=1), without the slow short-axis reduction
         vis = r > 0
-        g = np.asarray(means2d_grad, np.float64)[vis]
-        gx = g[:, 0] * (NDC_PER_PIXEL_HALF * width)
-        gy = g[:, 1] * (NDC_PER_PIXEL_HALF * height)
-        self.grad_accum[vis] += np.sqrt(gx * gx + gy * gy)   # the L2 norm of the NDC gradient
-        self.denom[vis] += 1
-        self.max_radii[vis] = np.maximum(self.max_radii[vis], r[vis])
+        g = np.asarray(means2d_grad)
+        gx = g[:, 0].astype(np.float64) * (NDC_PER_PIXEL_HALF * width)
+        gy = g[:, 1].astype(np.float64) * (NDC_PER_PIXEL_HALF * height)
+        # whole-array updates instead of gathers and scatters through ``vis`` (the same values:
+        # the sums only ever hold non-negative numbers, so adding 0.0 where not visible is exact)
+        self.grad_accum += np.where(vis, np.sqrt(gx * gx + gy * gy), 0.0)  # the L2 norm of the NDC gradient
+        self.denom += vis
+        np.maximum(self.max_radii, np.where(vis, r, 0), out=self.max_radii)
 
     def mean_grad(self) -> np.ndarray:
         """accum / denom, 0 where never visible (3DGS sets the NaN of 0/0 to 0)."""
