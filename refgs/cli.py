@@ -6,7 +6,7 @@
     refgs train --resume RUN_DIR
     refgs eval RUN_DIR [--model PATH.ply] [--no-lpips]
     refgs render RUN_DIR [--split test|train|all]
-    refgs demo [--out DIR] [--iters N]
+    refgs demo [--out DIR] [--iters N] [--backend fast|reference] [--seed S]
     refgs bench [--n N ...] [--size WxH ...] [--backends ...] [--fern-run RUN] [--out DIR]
     refgs flatness RUN_DIR ... [--gammas G ...] [--seeds S] [--settings flatness|training]
     refgs table RUN_DIR ... [--metrics psnr ssim lpips_vgg] [--baseline LABEL] [--out DIR]
@@ -15,8 +15,8 @@
     refgs sweep GRID.toml --out DIR [--executor local|ray] [--workers N] [--list] ...
     refgs run-one GRID.toml --out DIR --index I
 
-The work is done by refgs.runs (train, resume, evaluate, render, demo), by the analysis modules
-(refgs.analysis.*) and by the sweep (refgs.sweep.command), which add their own subcommands; the
+The work is done by refgs.runs (train, resume, evaluate, render), by the analysis modules
+(refgs.analysis.*, the demo among them) and by the sweep (refgs.sweep.command), which add their own subcommands; the
 options of ``refgs train`` are defined in refgs.sweep.options, shared with grid files.  Bad input
 (missing folder, corrupt model, empty image folder, unsupported camera, --views too large, ...)
 ends with ONE line ``refgs: error: ...`` on stderr naming the file or flag, exit status 2, and no
@@ -55,7 +55,7 @@ def _add_train(sub) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     """The parser of every ``refgs`` subcommand; ``args.handler(args, argv)`` runs one."""
-    from .analysis import bench, figures, flatness, records, tables
+    from .analysis import bench, demo, figures, flatness, records, tables
     from .sweep import command as sweep
 
     p = _Parser(prog="refgs", description="refgs: the numpy 3DGS specification - training CLI")
@@ -75,11 +75,15 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--split", default="test", choices=("test", "train", "all"))
     r.set_defaults(handler=lambda a, _: print(runs.render_run(a.run_dir, a.split)))
 
-    m = sub.add_parser("demo", help="train 3 views of the packaged demo scene and evaluate")
-    m.add_argument("--out")
-    m.add_argument("--iters", type=int, default=runs.DEMO_ITERS)
+    m = sub.add_parser("demo", help="3DGS against FM on 3 views of the packaged demo scene: "
+                                    "table and comparison picture")
+    m.add_argument("--out", help="output folder (default refgs-demo-<time>)")
+    m.add_argument("--iters", type=int, default=demo.DEMO_ITERS)
+    m.add_argument("--backend", default=None, help="default: fast when numba is installed")
+    m.add_argument("--seed", type=int, default=0)
     m.add_argument("--quiet", action="store_true")
-    m.set_defaults(handler=lambda a, _: runs.demo(a.out, a.iters, progress=not a.quiet))
+    m.set_defaults(handler=lambda a, _: demo.run_demo(a.out, a.iters, a.backend, a.seed,
+                                                      progress=not a.quiet))
 
     for name, module in (("bench", bench), ("flatness", flatness), ("table", tables),
                          ("figures", figures), ("record", records), ("sweep", sweep)):

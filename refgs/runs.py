@@ -1,5 +1,5 @@
 """The run directory: create, train, resume, load, evaluate and render a run (docs/spec/training.md
-TRN-07..TRN-09).  The one way in: ``refgs train|eval|render|demo`` call these functions, and the
+TRN-07..TRN-09).  The one way in: ``refgs train|eval|render`` and ``refgs demo`` call these functions, and the
 analysis floor (refgs.analysis) reads runs through them.
 
 A run directory holds (the *_FILE names below):
@@ -19,7 +19,6 @@ It is built under a hidden name beside its final path and renamed to it at the f
     load(path) -> LoadedRun            (config, cfg, trainer) with the checkpoint loaded
     evaluate_run(path) -> dict         re-evaluate a finished run (writes metrics.json)
     render_run(path, split) -> Path    PNG renders of its views
-    demo(out, iters) -> dict           the packaged demo scene, trained and evaluated
 """
 from __future__ import annotations
 
@@ -65,12 +64,6 @@ LPIPS_MIN_SIDE = {"vgg": 16, "alex": 31}
 #: The three LPIPS variants reported: (key, net, input convention) (MET-05, MET-06).
 LPIPS_VARIANTS = (("lpips_vgg", "vgg", "01"), ("lpips_vgg_official", "vgg", "official"),
                   ("lpips_alex", "alex", "official"))
-#: `refgs demo` defaults: views and iterations (chosen to take a few minutes on 2 cores), and
-#: densification brought forward from the preset's 500/100 so that a short demo densifies
-#: (at 150, 200, 250 for 300 iterations).  Our choice.
-DEMO_VIEWS = 3
-DEMO_ITERS = 300
-DEMO_DENSIFY = {"start": 100, "interval": 50}
 
 
 class Interrupted(Exception):
@@ -497,21 +490,8 @@ def render_run(run_dir: str | Path, split: str = "test") -> Path:
     return run_dir / RENDER_DIR
 
 
-def demo(out: str | Path | None = None, iters: int = DEMO_ITERS, progress: bool = True) -> dict:
-    """Train DEMO_VIEWS views of the packaged demo scene and evaluate the held-out views."""
-    from .data.demo import demo_scene_path
-
-    out = Path(out) if out else Path(f"refgs-demo-{time.strftime('%Y%m%d-%H%M%S')}")
-    cfg = TrainConfig.with_preset("dropgaussian", DEMO_DENSIFY, scene=str(demo_scene_path()),
-                                  views=DEMO_VIEWS, iters=iters, images="images",
-                                  init_points="train-views", checkpoint_every=0,
-                                  eval_every=max(1, iters // 5))
-    run_dir = train(cfg, out, progress=progress, command=["refgs", "demo"])
-    return json.loads((run_dir / METRICS_FILE).read_text())
-
-
 __all__ = ["train", "resume", "load", "LoadedRun", "make_trainer", "evaluate", "evaluate_run",
-           "render_run", "finish", "metrics_table", "plot_history", "demo", "load_views",
+           "render_run", "finish", "metrics_table", "plot_history", "load_views",
            "initial_points", "absolute_paths", "settings_hash", "read_config", "write_config",
            "RunDir", "Interrupted", "StopFlag", "CONFIG_FILE", "CHECKPOINT_FILE", "MODEL_FILE",
            "INIT_FILE", "METRICS_FILE", "HISTORY_FILE", "PLOT_FILE", "RENDER_DIR"]

@@ -134,7 +134,7 @@ def test_module_object_plugs_in_everywhere(tmp_path, monkeypatch):
     assert (bb.label, bb.dtype) == (spec, "float64")
     g, cam = benchmark_scene(60, 32, 24, seed=2)               # the trainer
     view = View("v", cam, np.clip(refgs.render(g, cam).image, 0, 1))
-    cfg = TrainConfig(scene="-", views=1, iters=3, backend=spec, lpips=False)
+    cfg = TrainConfig(scene="-", views=1, iters=3, backend=spec, lpips=False, dtype="float64")
     params = g.replace(means=g.means + 0.01).to_dict()
     runs = {}
     for name in (spec, "reference"):

@@ -147,7 +147,7 @@ def test_too_many_views(tmp_path, capsys, tiny_scene):
 
 @pytest.mark.parametrize("flag,value", [("--iters", "0"), ("--checkpoint-every", "-1"),
                                         ("--init-points", "cloud.xyz"), ("--backend", "cuda"),
-                                        ("--backend", "ref32"), ("--backend", "no_such_mod:obj")])
+                                        ("--backend", "ref64"), ("--backend", "no_such_mod:obj")])
 def test_bad_flag_values(tmp_path, capsys, tiny_scene, flag, value):
     args = tiny_args(tiny_scene, tmp_path / "run")
     if flag in args:
@@ -260,7 +260,7 @@ def test_corrupt_model_and_checkpoint(tiny_run, tmp_path, capsys):
 
 
 @pytest.mark.parametrize("extra", [
-    ("--dtype", "float32", "--background", "white", "--loss-form", "blend", "--no-clamp"),
+    ("--dtype", "float64", "--background", "white", "--loss-form", "blend", "--no-clamp"),
     ("--densify-preset", "original", "--background", "random", "--profile", "gsplat"),
 ])
 def test_other_settings_run(tiny_scene, tmp_path, capsys, extra):
@@ -268,7 +268,7 @@ def test_other_settings_run(tiny_scene, tmp_path, capsys, extra):
     rc, _, err = run_cli(tiny_args(tiny_scene, out, 8, *extra), capsys)
     assert rc == 0, err
     arrays = np.load(out / "checkpoint.npz", allow_pickle=False)
-    dtype = np.float32 if "float32" in extra else np.float64
+    dtype = np.float64 if "float64" in extra else np.float32
     assert arrays["param/means"].dtype == dtype and arrays["adam/m/sh"].dtype == dtype
     settings = json.loads((out / "config.json").read_text())["settings"]
     for flag, value in zip(extra[::2], extra[1::2]):

@@ -40,7 +40,7 @@ def umeyama(src, dst):
 
 def test_cache_builds_once_atomically(cached, monkeypatch):
     root, path = cached
-    assert path == root / f"demo-v{demo.DEMO_VERSION}"
+    assert path == root / f"demo-v{demo.DEMO_VERSION}-{demo.DEMO_WIDTH}x{demo.DEMO_HEIGHT}"
     assert sorted(p.name for p in root.iterdir()) == [path.name]  # no temp folders left
     assert not (path / "sfm").exists() and not list(path.rglob("*.db"))
     monkeypatch.setattr(demo, "make_demo_scene", lambda *a, **k: pytest.fail("rebuilt"))

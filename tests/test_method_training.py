@@ -43,15 +43,17 @@ def scene(seed=0):
 def make_config(method_name: str, iters=40, densify=None, seed=0, params=None) -> TrainConfig:
     dcfg = densify or DensifyConfig(start=3, interval=5, until=iters, grad_threshold=0.0002,
                                     opacity_reset_interval=10_000)
+    # float64: the method's identities (FM-05's replayed Adam step, bit-exact resumes) are checked
+    # in the reference's exact arithmetic, not the float32 training default
     return TrainConfig(scene="synthetic", views=3, iters=iters, seed=seed, densify=dcfg, lpips=False,
-                       method=method_name, method_params=params or {})
+                       method=method_name, method_params=params or {}, dtype="float64")
 
 
 def make_trainer(method: Method, iters=40, densify=None, seed=0):
     train_views, test_views, init = scene()
     cfg = make_config(method.name, iters, densify, seed)
-    return Trainer(cfg, train_views, test_views, init, extent=4.0, backend=get_backend("reference"),
-                   method=method)
+    return Trainer(cfg, train_views, test_views, init, extent=4.0,
+                   backend=get_backend("reference", dtype=cfg.dtype), method=method)
 
 
 SMALL = FlatMinimaConfig(reinit_interval=10, reinit_window=4)

@@ -1,5 +1,6 @@
-"""docs/results.md's summary tables are exactly what refgs.analysis.summary builds from the
-committed records (FM-15), and the builder computes, marks and refuses what it should."""
+"""docs/results.md's summary tables and main-campaign block are exactly what
+refgs.analysis.summary builds from the committed records (FM-15), and the builder computes, marks
+and refuses what it should (the campaign block on made-up records: test_campaign_analysis.py)."""
 from __future__ import annotations
 
 import json
@@ -8,8 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from refgs.analysis.summary import (BEGIN_MARKER, END_MARKER, default_unrecorded, load_records,
-                                    main, split_document, summary_markdown, with_block)
+from refgs.analysis.campaign import campaign_markdown
+from refgs.analysis.summary import (BEGIN_MARKER, END_MARKER, MAIN_BEGIN, MAIN_END,
+                                    default_unrecorded, load_records, main, split_document,
+                                    summary_markdown, with_block)
 from refgs.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -22,6 +25,15 @@ def test_results_doc_summary_is_generated_from_the_records():
     _, block, _ = split_document(DOC.read_text(encoding="utf-8"), str(DOC))
     expected = summary_markdown(RECORDS, default_unrecorded(RECORDS))
     assert block.strip() == expected.strip(), f"docs/results.md is out of date; run: {UPDATE}"
+
+
+def test_results_doc_main_block_is_generated_from_the_records():
+    text = DOC.read_text(encoding="utf-8")
+    _, block, _ = split_document(text, str(DOC), MAIN_BEGIN, MAIN_END)
+    assert block.strip() == campaign_markdown(RECORDS).strip(), \
+        f"docs/results.md is out of date; run: {UPDATE}"
+    # near the top: before the summary block
+    assert text.index(MAIN_END) < text.index(BEGIN_MARKER)
 
 
 def test_every_record_is_in_the_results_doc():

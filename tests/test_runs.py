@@ -53,10 +53,10 @@ def test_load_gives_the_checkpointed_trainer(run):
     config, cfg, trainer = loaded
     assert cfg.iters == trainer.t == ITERS and config["train_images"] == [
         v.name for v in trainer.train_views]
-    assert trainer.backend.dtype == "float64" and trainer.backend.profile == "inria"
+    assert trainer.backend.dtype == "float32" and trainer.backend.profile == "inria"  # defaults
     metrics = json.loads((run / runs.METRICS_FILE).read_text())
     assert runs.evaluate(trainer, lpips=False)["psnr"] == pytest.approx(metrics["psnr"], abs=1e-12)
-    again = runs.load(run, backend="ref64").trainer          # another backend, same renders
+    again = runs.load(run, backend="ref32").trainer          # another backend, same renders
     v = trainer.test_views[0]
     assert np.array_equal(again.render_view(v), trainer.render_view(v))
 
@@ -96,8 +96,8 @@ def test_interrupted_then_resumed_equals_uninterrupted(scene, run, tmp_path):
 def test_bad_input_leaves_nothing(scene, tmp_path):
     with pytest.raises(ConfigError, match="--backend: unknown backend 'nope'"):
         runs.train(tiny_config(scene, backend="nope"), tmp_path / "a", progress=False)
-    with pytest.raises(ConfigError, match="--backend ref32: renders dtype float32 only"):
-        runs.train(tiny_config(scene, backend="ref32"), tmp_path / "b", progress=False)
+    with pytest.raises(ConfigError, match="--backend ref64: renders dtype float64 only"):
+        runs.train(tiny_config(scene, backend="ref64"), tmp_path / "b", progress=False)
     with pytest.raises(ConfigError, match="--method"):
         runs.train(tiny_config(scene, method="sam"), tmp_path / "c", progress=False)
     assert list(tmp_path.iterdir()) == []

@@ -73,11 +73,16 @@ def test_fern_three_views(tmp_path, backend):
 
 @pytest.mark.slow
 def test_demo_command(tmp_path, capsys):
-    """`refgs demo` end to end with a few iterations (builds the demo scene on first use)."""
+    """`refgs demo` end to end with a few iterations (builds the demo scene on first use): both
+    runs, the table and the comparison picture."""
+    from refgs.analysis.demo import DEMO_METHODS, FIGURE_FILE
     from refgs.cli import main
 
     assert main(["demo", "--out", str(tmp_path / "demo"), "--iters", "6"]) == 0
     out = capsys.readouterr().out
-    assert "mean" in out and "psnr" in out
-    metrics = json.loads((tmp_path / "demo" / "metrics.json").read_text())
-    assert metrics["iterations"] == 6 and metrics["lpips_vgg"] is not None
+    assert "PSNR" in out and "picture:" in out
+    for method in DEMO_METHODS:
+        metrics = json.loads((tmp_path / "demo" / method / "metrics.json").read_text())
+        assert metrics["iterations"] == 6 and metrics["lpips_vgg"] is not None
+        assert method in out
+    assert (tmp_path / "demo" / FIGURE_FILE).stat().st_size > 10_000

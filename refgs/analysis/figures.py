@@ -1,6 +1,8 @@
 """``refgs figures``: the pictures behind docs/results.md, made from finished runs (FM-14).
 
-    refgs figures RUN_DIR [RUN_DIR ...] [--flatness DIR_OR_JSON ...] [--out figures]
+    refgs figures RUN_DIR [RUN_DIR ...] [--flatness DIR_OR_JSON ...] [--over-seeds]
+                  [--out figures]
+    refgs figures --compare RUN_DIR [RUN_DIR ...] [--seed 0] [--view 0] [--out figures]
 
 One command, one folder (``figures/`` by default, which git ignores: renders of the real
 scenes are not committed).  It writes
@@ -14,6 +16,11 @@ scenes are not committed).  It writes
 - ``gaussians.png`` -- the number of Gaussians against iteration;
 - ``flatness.png`` -- the curves of every ``flatness.json`` given with ``--flatness`` (the output
   of ``refgs flatness``) in one figure;
+- ``flatness_over_seeds.png`` (with ``--over-seeds``) -- those curves grouped by scene and method
+  label, the mean over training seeds with its 95 % t-band (refgs.analysis.flatness);
+- ``compare_<scene>_v<views>_s<seed>.png`` (with ``--compare``, instead of the per-run figures) --
+  ground truth | 3DGS | DropGaussian | FM on one test view with a magnified crop, per scene
+  (refgs.analysis.qualitative);
 - ``index.md`` -- what each file shows and which runs it was made from.
 
 Renders are read from ``RUN/renders/test/`` (written when the run finished); a run without them is
@@ -209,14 +216,25 @@ def load_flatness(paths) -> dict:
     return curves
 
 
-def make_figures(run_dirs, flatness=(), out: str | Path = DEFAULT_OUT) -> list[Path]:
-    """Every figure of the module docstring into ``out``; returns the files written."""
+def make_figures(run_dirs, flatness=(), out: str | Path = DEFAULT_OUT, compare: bool = False,
+                 seed: int = 0, view: int = 0, over_seeds: bool = False) -> list[Path]:
+    """Every figure of the module docstring into ``out``; returns the files written.
+    ``compare``: the runs make the comparisons of refgs.analysis.qualitative (runs of ``seed``,
+    test view ``view``) instead of the per-run figures; ``over_seeds``: also the flatness curves
+    over training seeds."""
+    from . import qualitative
+    from .flatness import FLATNESS_OVER_SEEDS_PLOT, group_over_seeds, plot_over_seeds
     from .flatness import plot_curves as plot_flatness
 
     if not run_dirs and not flatness:
         raise ConfigError("refgs figures: give at least one RUN_DIR or --flatness")
-    runs = [load_figure_run(d) for d in run_dirs]
-    curves = load_flatness(flatness)          # read everything before writing anything
+    if over_seeds and not flatness:
+        raise ConfigError("--over-seeds: give the flatness.json files with --flatness")
+    # read everything before writing anything
+    groups = qualitative.plan(run_dirs, seed, view) if compare and run_dirs else {}
+    runs = [] if compare else [load_figure_run(d) for d in run_dirs]
+    curves = load_flatness(flatness)
+    over = group_over_seeds(curves) if over_seeds else {}
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     import matplotlib
@@ -240,10 +258,22 @@ def make_figures(run_dirs, flatness=(), out: str | Path = DEFAULT_OUT) -> list[P
             fn(runs, out / name)
             written.append(out / name)
             index.append(f"- `{name}`: {what} of " + ", ".join(r["name"] for r in runs))
+    for path, line in qualitative.make_comparisons(groups, out, seed, view):
+        written.append(path)
+        index.append(f"- {line}")
     if curves:
         plot_flatness(curves, out / "flatness.png")
         written.append(out / "flatness.png")
         index.append("- `flatness.png`: PSNR under SAP against gamma of " + ", ".join(curves))
+    if over_seeds:
+        path = out / FLATNESS_OVER_SEEDS_PLOT
+        plot_over_seeds(curves, path)
+        written.append(path)
+        which = "; ".join(f"{cond or 'runs'}: "
+                          + ", ".join(f"{lab} (n={g['n']})" for lab, g in by.items())
+                          for cond, by in over.items())
+        index.append(f"- `{path.name}`: mean PSNR under SAP over training seeds, 95 % t-band where "
+                     f"n >= 2, of {which}")
     atomic_write_text(out / "index.md", "\n".join(index) + "\n")
     return written + [out / "index.md"]
 
@@ -254,12 +284,22 @@ def add_parser(sub) -> None:
     f.add_argument("run_dirs", nargs="*")
     f.add_argument("--flatness", nargs="+", default=[],
                    help="flatness.json files (or their folders) written by refgs flatness")
+    f.add_argument("--over-seeds", action="store_true",
+                   help="with --flatness: also the curves grouped by scene and method, mean over "
+                        "training seeds with a 95%% t-band")
+    f.add_argument("--compare", action="store_true",
+                   help="instead of per-run figures: ground truth | 3DGS | DropGaussian | FM per "
+                        "scene on one test view, with a zoomed crop")
+    f.add_argument("--seed", type=int, default=0, help="with --compare: the runs' seed (default 0)")
+    f.add_argument("--view", type=int, default=0,
+                   help="with --compare: index into the test views (default 0)")
     f.add_argument("--out", default=DEFAULT_OUT, help="folder (default figures/, git-ignored)")
     f.add_argument("--quiet", action="store_true")
 
 
 def run(args) -> list[Path]:
-    written = make_figures(args.run_dirs, args.flatness, args.out)
+    written = make_figures(args.run_dirs, args.flatness, args.out, args.compare, args.seed,
+                           args.view, args.over_seeds)
     if not args.quiet:
         for p in written:
             print(p)

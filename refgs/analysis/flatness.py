@@ -9,25 +9,37 @@ views, mean +- standard deviation over seeds, for each gamma.  A flatter minimum
                    [--settings flatness|training] [--backend NAME] [--out DIR]
 
 Writes ``flatness.json``, ``flatness.csv`` and ``flatness.png`` (train and test panels, one curve
-per run) into ``--out``.  Seeds: the perturbation of (gamma index k, seed s) is drawn from
-``np.random.default_rng([s, k])``, so every number is reproducible and each gamma has its own
-stream.
+per run) into ``--out``; each curve of flatness.json carries ``run``: the run's name, scene,
+views, method label (FM-13) and training seed.  Seeds: the perturbation of (gamma index k, seed s)
+is drawn from ``np.random.default_rng([s, k])``, so every number is reproducible and each gamma
+has its own stream.
+
+Over training seeds (``group_over_seeds``, ``plot_over_seeds``; ``refgs figures --flatness ...
+--over-seeds``): the curves are grouped by (scene, views) and method label, and per gamma the mean
+over the group's runs of their PSNR (each a mean over perturbation seeds) is drawn with the 95 %
+Student-t interval over the runs, ``mean +- t_{0.975, n-1} s / sqrt(n)``, where n >= 2.
 """
 from __future__ import annotations
 
 import csv
 import io
+import re
 from pathlib import Path
 
 import numpy as np
+
+from scipy import stats
 
 from ..errors import ConfigError
 from ..io.atomic import atomic_path, atomic_write_json, atomic_write_text
 from ..metrics.psnr import psnr
 from ..methods.flat_minima import DEFAULT_CLAMP, P_PERTURB, sap_offsets
+from .stats import CONFIDENCE
 
 #: Files written into ``--out``.
 FLATNESS_JSON, FLATNESS_CSV, FLATNESS_PLOT = "flatness.json", "flatness.csv", "flatness.png"
+#: The figure of ``plot_over_seeds`` (written by ``refgs figures --over-seeds``).
+FLATNESS_OVER_SEEDS_PLOT = "flatness_over_seeds.png"
 #: The paper's figure: gamma on the x axis, 5 seeds.  [FM-12]
 DEFAULT_GAMMAS = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0)
 DEFAULT_SEEDS = 5
@@ -111,6 +123,91 @@ def plot_curves(curves: dict, path: Path) -> None:
     plt.close(fig)
 
 
+#: The training-seed suffix of a run name (``fern_v3_fm_s0``): groups the curves of flatness.json
+#: files written before curves carried ``run``.
+SEED_SUFFIX = re.compile(r"_s(\d+)$")
+
+
+def curve_key(name: str, curve: dict) -> tuple[str, str, str]:
+    """(condition, method label, seed) of a curve: from its ``run`` entry, else from its name
+    (``fern3_fm_s0 (fm, t=10000)``: condition "", the run name without ``_s<seed>``)."""
+    run = curve.get("run")
+    if isinstance(run, dict) and {"scene", "views", "label", "seed"} <= set(run):
+        return f"{run['scene']}, {run['views']} views", str(run["label"]), str(run["seed"])
+    stem = name.split(" ")[0]
+    m = SEED_SUFFIX.search(stem)
+    return ("", stem[:m.start()], m.group(1)) if m else ("", stem, "")
+
+
+def group_over_seeds(curves: dict) -> dict:
+    """{condition: {label: {"n", "gammas", "runs", "train"/"test": {"mean", "lo", "hi"}}}}: per
+    gamma the mean over the group's runs of their mean PSNR and the 95 % t-interval over the runs
+    (``lo``/``hi`` None for one run); ConfigError when a group's gammas differ or two of its
+    curves have one training seed."""
+    groups: dict = {}
+    seen: dict = {}
+    for name, c in curves.items():
+        cond, label, seed = curve_key(name, c)
+        if seed and (cond, label, seed) in seen:
+            raise ConfigError(f"flatness curves {seen[cond, label, seed]!r} and {name!r}: the same "
+                              f"run ({cond or 'scene'} {label}, seed {seed}) twice")
+        seen[cond, label, seed] = name
+        groups.setdefault(cond, {}).setdefault(label, []).append((name, c))
+    out: dict = {}
+    for cond, by_label in sorted(groups.items()):
+        for label, items in sorted(by_label.items()):
+            gammas = items[0][1]["gammas"]
+            for name, c in items[1:]:
+                if c["gammas"] != gammas:
+                    raise ConfigError(f"flatness curves {items[0][0]!r} and {name!r}: different "
+                                      f"gammas {gammas} and {c['gammas']}")
+            n = len(items)
+            g = {"n": n, "gammas": gammas, "runs": [name for name, _ in items]}
+            for split in ("train", "test"):
+                a = np.asarray([c[split]["mean"] for _, c in items], np.float64)   # (n, gammas)
+                mean = a.mean(axis=0)
+                if n >= 2:
+                    t_crit = stats.t.ppf(0.5 + CONFIDENCE / 2, n - 1)
+                    half = t_crit * a.std(axis=0, ddof=1) / np.sqrt(n)
+                    lo, hi = (mean - half).tolist(), (mean + half).tolist()
+                else:
+                    lo = hi = None
+                g[split] = {"mean": mean.tolist(), "lo": lo, "hi": hi}
+            out.setdefault(cond, {})[label] = g
+    return out
+
+
+def plot_over_seeds(curves: dict, path: Path) -> dict:
+    """``group_over_seeds`` drawn: one row per condition, train and test panels, a line per
+    method label with its 95 % band over seeds (no band for one seed); returns the groups."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    groups = group_over_seeds(curves)
+    fig, axes = plt.subplots(len(groups), 2, figsize=(10, 3.8 * len(groups)), squeeze=False)
+    for row, (cond, by_label) in zip(axes, groups.items()):
+        for ax, split in zip(row, ("train", "test")):
+            for k, (label, g) in enumerate(by_label.items()):
+                col = f"C{k % 10}"
+                ax.plot(g["gammas"], g[split]["mean"], "o-", ms=3, color=col,
+                        label=f"{label} (n={g['n']})")
+                if g[split]["lo"] is not None:
+                    ax.fill_between(g["gammas"], g[split]["lo"], g[split]["hi"], color=col,
+                                    alpha=0.2, lw=0)
+            ax.set_title(f"{cond + ': ' if cond else ''}{split} views", fontsize=9)
+            ax.set_xlabel(r"perturbation $\gamma$")
+            ax.set_ylabel("PSNR (dB)")
+            ax.grid(alpha=0.3)
+        row[0].legend(fontsize=8)
+    fig.suptitle("robustness to position perturbations over training seeds (mean, 95 % t-band)")
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+    return groups
+
+
 def add_parser(sub) -> None:
     f = sub.add_parser("flatness", help="PSNR of trained runs under SAP position perturbations")
     f.add_argument("run_dirs", nargs="+")
@@ -126,6 +223,7 @@ def add_parser(sub) -> None:
 def run(args) -> dict:
     """The ``refgs flatness`` command; returns {run label: curve}."""
     from ..runs import load
+    from .tables import method_label
 
     _check(args.gammas, args.seeds, args.settings)
     curves = {}
@@ -133,15 +231,18 @@ def run(args) -> dict:
     for rd in args.run_dirs:
         _, cfg, trainer = load(rd, backend=args.backend)
         label = f"{Path(rd).name} ({cfg.method}, t={trainer.t})"
-        trainers.append((label, trainer))
+        info = {"name": Path(rd).absolute().name, "scene": Path(cfg.scene).name, "views": cfg.views,
+                "label": method_label(cfg.to_dict()), "seed": cfg.seed}
+        trainers.append((label, trainer, info))
     total = len(trainers) * len(args.gammas) * args.seeds
     bar = None
     if not args.quiet:
         from tqdm import tqdm
         bar = tqdm(total=total, desc="flatness", unit="render set")
-    for label, trainer in trainers:
-        curves[label] = flatness_curve(trainer, args.gammas, args.seeds, args.settings,
-                                       progress=(bar.update if bar is not None else None))
+    for label, trainer, info in trainers:
+        curves[label] = {**flatness_curve(trainer, args.gammas, args.seeds, args.settings,
+                                          progress=(bar.update if bar is not None else None)),
+                         "run": info}
     if bar is not None:
         bar.close()
     out = Path(args.out)
@@ -167,5 +268,6 @@ def run(args) -> dict:
     return curves
 
 
-__all__ = ["flatness_curve", "plot_curves", "run", "DEFAULT_GAMMAS", "DEFAULT_SEEDS", "SETTINGS",
-           "FLATNESS_JSON", "FLATNESS_CSV", "FLATNESS_PLOT"]
+__all__ = ["flatness_curve", "plot_curves", "curve_key", "group_over_seeds", "plot_over_seeds",
+           "run", "DEFAULT_GAMMAS", "DEFAULT_SEEDS", "SETTINGS", "FLATNESS_JSON", "FLATNESS_CSV",
+           "FLATNESS_PLOT", "FLATNESS_OVER_SEEDS_PLOT"]

@@ -1,6 +1,7 @@
 """The summary tables of docs/results.md, built from the committed records (FM-13, FM-15).
 
-    python -m refgs.analysis.summary results/records [--unrecorded FILE] [--update docs/results.md]
+    python -m refgs.analysis.summary results/records [--unrecorded FILE] [--main]
+                                     [--update docs/results.md]
 
 Reads every record folder of ``results/records/`` (``refgs record``): a run's ``config.json``
 (scene, views, iterations, method and its parameters, seed) and ``metrics.json`` (the test-view
@@ -17,9 +18,14 @@ Runs that were reported before records existed are listed, without numbers, in a
 ``views``, ``iters``, ``method`` (a method label), ``seeds`` (text) and ``note``; each becomes a
 row marked "no record".  Every number printed comes from a record.
 
-The output is Markdown; in docs/results.md it sits between ``BEGIN_MARKER`` and ``END_MARKER``,
-and ``--update FILE`` rewrites that block in place (atomically).  tests/test_results_doc.py checks
-that the document's block is exactly this output.
+The records of the main campaign (``refgs.analysis.campaign``: made by the grid
+experiments/paper_main.toml) are left out of the families; they make their own block
+(``campaign.campaign_markdown``), printed with ``--main``.
+
+The output is Markdown; in docs/results.md the summary sits between ``BEGIN_MARKER`` and
+``END_MARKER``, the campaign block between ``MAIN_BEGIN`` and ``MAIN_END``, and ``--update FILE``
+rewrites both blocks in place (atomically; the campaign block only where FILE has its markers).
+tests/test_results_doc.py checks that the document's blocks are exactly this output.
 """
 from __future__ import annotations
 
@@ -35,10 +41,13 @@ import numpy as np
 
 from ..errors import ConfigError, RefgsError
 from ..io.atomic import atomic_write_text
+from .campaign import campaign_markdown, made_by_campaign
 from .tables import method_label
 
 BEGIN_MARKER = "<!-- summary:begin -->"
 END_MARKER = "<!-- summary:end -->"
+MAIN_BEGIN = "<!-- main:begin -->"
+MAIN_END = "<!-- main:end -->"
 #: The paper's protocol length (the DropGaussian settings: T = 10,000 iterations); runs of another
 #: length carry "T = ..." in their method cell.
 PROTOCOL_ITERS = 10_000
@@ -120,9 +129,11 @@ def read_json(path: Path) -> dict:
     return data
 
 
-def load_run(folder: Path) -> Run:
-    """The Run of a record folder holding config.json and metrics.json."""
-    settings = read_json(folder / "config.json").get("settings")
+def load_run(folder: Path, config: dict | None = None) -> Run:
+    """The Run of a record folder holding config.json (or its content ``config``) and
+    metrics.json."""
+    config = read_json(folder / "config.json") if config is None else config
+    settings = config.get("settings")
     metrics = read_json(folder / "metrics.json")
     if not isinstance(settings, dict):
         raise ConfigError(f"{folder / 'config.json'}: no 'settings' object")
@@ -135,15 +146,17 @@ def load_run(folder: Path) -> Run:
 
 
 def load_records(records_dir: str | Path) -> tuple[list[Run], dict[str, dict]]:
-    """(runs, {record id: flatness.json}) of every folder of ``records_dir``; folders that are
-    neither are refused (ConfigError naming the folder)."""
+    """(runs, {record id: flatness.json}) of every folder of ``records_dir`` except the main
+    campaign's records; folders that are neither are refused (ConfigError naming the folder)."""
     records_dir = Path(records_dir)
     if not records_dir.is_dir():
         raise ConfigError(f"{records_dir}: not a folder (expected results/records)")
     runs, flatness = [], {}
     for folder in sorted(p for p in records_dir.iterdir() if p.is_dir()):
         if (folder / "config.json").is_file():
-            runs.append(load_run(folder))
+            config = read_json(folder / "config.json")
+            if not made_by_campaign(config):
+                runs.append(load_run(folder, config))
         elif (folder / "flatness.json").is_file():
             flatness[folder.name] = read_json(folder / "flatness.json")
         else:
@@ -300,22 +313,35 @@ def summary_markdown(records_dir: str | Path, unrecorded: str | Path | None = No
 
 
 # --- the document ---------------------------------------------------------------------------
-def split_document(text: str, name: str = "document") -> tuple[str, str, str]:
-    """(before, block, after) around the one BEGIN_MARKER ... END_MARKER pair; ConfigError
-    naming ``name`` if the markers are missing, repeated or out of order."""
-    if text.count(BEGIN_MARKER) != 1 or text.count(END_MARKER) != 1:
-        raise ConfigError(f"{name}: expected one {BEGIN_MARKER} and one {END_MARKER} line")
-    before, rest = text.split(BEGIN_MARKER)
-    if END_MARKER not in rest:
-        raise ConfigError(f"{name}: {END_MARKER} comes before {BEGIN_MARKER}")
-    block, after = rest.split(END_MARKER)
-    return before + BEGIN_MARKER, block, END_MARKER + after
+def split_document(text: str, name: str = "document", begin: str = BEGIN_MARKER,
+                   end: str = END_MARKER) -> tuple[str, str, str]:
+    """(before, block, after) around the one ``begin`` ... ``end`` pair (the summary's by
+    default); ConfigError naming ``name`` if the markers are missing, repeated or out of order."""
+    if text.count(begin) != 1 or text.count(end) != 1:
+        raise ConfigError(f"{name}: expected one {begin} and one {end} line")
+    before, rest = text.split(begin)
+    if end not in rest:
+        raise ConfigError(f"{name}: {end} comes before {begin}")
+    block, after = rest.split(end)
+    return before + begin, block, end + after
 
 
-def with_block(text: str, markdown: str, name: str = "document") -> str:
-    """``text`` with its summary block replaced by ``markdown`` (blank line on each side)."""
-    before, _, after = split_document(text, name)
+def with_block(text: str, markdown: str, name: str = "document", begin: str = BEGIN_MARKER,
+               end: str = END_MARKER) -> str:
+    """``text`` with its ``begin`` ... ``end`` block replaced by ``markdown`` (blank line on each
+    side)."""
+    before, _, after = split_document(text, name, begin, end)
     return f"{before}\n\n{markdown.strip()}\n\n{after}"
+
+
+def updated_document(text: str, records_dir: str | Path, unrecorded: str | Path | None,
+                     name: str = "document") -> str:
+    """``text`` with its summary block, and its campaign block where it has MAIN_BEGIN or
+    MAIN_END, rebuilt from the records."""
+    text = with_block(text, summary_markdown(records_dir, unrecorded), name)
+    if MAIN_BEGIN in text or MAIN_END in text:
+        text = with_block(text, campaign_markdown(records_dir), name, MAIN_BEGIN, MAIN_END)
+    return text
 
 
 def default_unrecorded(records_dir: str | Path) -> Path | None:
@@ -330,20 +356,24 @@ def main(argv=None) -> int:
     ap.add_argument("--unrecorded", default=None,
                     help=f"TOML list of reported runs without a record (default: {UNRECORDED_FILE} "
                          "beside the records folder, if present)")
+    ap.add_argument("--main", action="store_true",
+                    help="print the main campaign's block instead of the summary")
     ap.add_argument("--update", metavar="FILE", default=None,
-                    help=f"rewrite the block between {BEGIN_MARKER} and {END_MARKER} of FILE "
-                         "instead of printing")
+                    help=f"rewrite the blocks between {BEGIN_MARKER} and {END_MARKER} and (where "
+                         f"present) {MAIN_BEGIN} and {MAIN_END} of FILE instead of printing")
     args = ap.parse_args(argv)
     try:
         unrecorded = args.unrecorded or default_unrecorded(args.records)
-        md = summary_markdown(args.records, unrecorded)
         if args.update:
             path = Path(args.update)
             if not path.is_file():
                 raise ConfigError(f"--update: {path} not found")
-            atomic_write_text(path, with_block(path.read_text(encoding="utf-8"), md, str(path)))
+            text = path.read_text(encoding="utf-8")
+            atomic_write_text(path, updated_document(text, args.records, unrecorded, str(path)))
+        elif args.main:
+            sys.stdout.write(campaign_markdown(args.records))
         else:
-            sys.stdout.write(md)
+            sys.stdout.write(summary_markdown(args.records, unrecorded))
     except RefgsError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -351,7 +381,8 @@ def main(argv=None) -> int:
 
 
 __all__ = ["summary_markdown", "load_records", "load_unrecorded", "split_document", "with_block",
-           "default_unrecorded", "FAMILIES", "BEGIN_MARKER", "END_MARKER", "main"]
+           "updated_document", "default_unrecorded", "FAMILIES", "BEGIN_MARKER", "END_MARKER",
+           "MAIN_BEGIN", "MAIN_END", "main"]
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -45,6 +45,12 @@ LOOK_AT = (-0.9, 0.7, -0.9)
 #: Horizontal field of view of the demo cameras (degrees).  Our choice.
 FOV_X_DEG = 60.0
 
+#: The default scene of demo_scene_path (the notebooks' and the tests'): views and image size.
+#: `refgs demo` asks for a larger one (refgs.analysis.demo.DEMO_SCENE_SIZE).  Our choice.
+DEMO_N_VIEWS = 12
+DEMO_WIDTH = 160
+DEMO_HEIGHT = 120
+
 #: Supersampling per pixel axis (SS x SS rays, box-filtered) against texture aliasing.
 SUPERSAMPLE = 3
 
@@ -215,16 +221,17 @@ def demo_cache_root() -> Path:
     return Path(base) / "refgs"
 
 
-def demo_scene_path() -> Path:
-    """The default demo scene (seed 0), generated on first use into the user cache
-    (``demo_cache_root()/demo-v{DEMO_VERSION}``); concurrent first uses are safe: each builds
-    in its own temporary folder and the first rename wins."""
-    final = demo_cache_root() / f"demo-v{DEMO_VERSION}"
+def demo_scene_path(width: int = DEMO_WIDTH, height: int = DEMO_HEIGHT) -> Path:
+    """The demo scene (seed 0, DEMO_N_VIEWS views of ``width`` x ``height``), generated on first
+    use into the user cache (``demo_cache_root()/demo-v{DEMO_VERSION}-{width}x{height}``);
+    concurrent first uses are safe: each builds in its own temporary folder and the first rename
+    wins."""
+    final = demo_cache_root() / f"demo-v{DEMO_VERSION}-{width}x{height}"
     complete = final / "sparse" / "0" / "points3D.bin"
     if complete.is_file():
         return final
     try:
-        make_demo_scene(final)
+        make_demo_scene(final, n_views=DEMO_N_VIEWS, width=width, height=height)
     except (OSError, ConfigError):
         if not complete.is_file():  # not a concurrent first use that published before us
             raise
@@ -232,4 +239,4 @@ def demo_scene_path() -> Path:
 
 
 __all__ = ["make_demo_scene", "demo_scene_path", "demo_cache_root", "render_planes",
-           "demo_cameras", "DEMO_VERSION"]
+           "demo_cameras", "DEMO_VERSION", "DEMO_N_VIEWS", "DEMO_WIDTH", "DEMO_HEIGHT"]

@@ -189,6 +189,10 @@ def render(gaussians, camera, config: RenderConfig | None = None, *,
     validate_inputs(gaussians, camera, config)
     if geometry not in GEOMETRY_PRECISIONS:
         input_error("geometry", f"one of {GEOMETRY_PRECISIONS}", geometry)
+    if config.deviations:
+        input_error("config.deviations", "none (refgs.fast renders the two profiles; the named "
+                    "deviations of docs/spec/deviations.md are refgs.render's)",
+                    sorted(config.deviations))
     profile = resolve_profile(config)
     g = gaussians
     out_dt = g.means.dtype                      # compositing and outputs

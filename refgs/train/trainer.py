@@ -71,7 +71,7 @@ class TrainConfig:
     checkpoint_every: int = 1000
     eval_every: int | None = None
     strict: bool = False
-    dtype: str = "float64"
+    dtype: str = "float32"
     profile: str = "inria"
     sh_degree: int = SH_MAX_DEGREE
     background: str = "black"
