@@ -239,3 +239,27 @@ def test_checkpoint_holds_the_initial_cloud(scene, tmp_path):
     resume(out, progress=False)
     pts2, _ = read_ply(out / "init_points.ply")
     np.testing.assert_allclose(pts2, pts, rtol=1e-6)
+
+
+@pytest.mark.skipif(__import__("importlib").util.find_spec("numba") is None,
+                    reason="the fast backend needs numba")
+@pytest.mark.parametrize("method", ["3dgs", "fm"])
+def test_fast_float32_resume_is_bit_identical(scene, tmp_path, method):
+    """The training default (float32, TrainConfig.dtype) on the fast backend: a run killed after
+    its checkpoint at 5 and resumed ends with the bytes of the uninterrupted run (TRN-09), FM's
+    perturbation stream included."""
+    extra = ("--backend", "fast", "--method", method)
+    full = tmp_path / "full"
+    train(config(scene, full, ITERS, *extra), full, progress=False)
+    arrays, _ = load_checkpoint(full / "checkpoint.npz")
+    assert arrays["param/means"].dtype == np.float32
+
+    def kill(trainer, stop):
+        if trainer.t == 7:
+            raise SimulatedKill
+
+    out = tmp_path / "run"
+    with pytest.raises(SimulatedKill):
+        train(config(scene, out, ITERS, *extra), out, progress=False, callback=kill)
+    resume(out, progress=False)
+    assert_same_state(full, out)

@@ -48,7 +48,9 @@ def add_train_options(t: argparse.ArgumentParser) -> None:
     t.add_argument("--eval-every", type=int, metavar="K",
                    help="test PSNR every K (default T/10; 0: end only)")
     t.add_argument("--strict", action="store_true", help="unmatched images/model entries are errors")
-    t.add_argument("--dtype", default="float32", choices=sorted(DTYPES))
+    t.add_argument("--dtype", default="float32", choices=sorted(DTYPES),
+                   help="training dtype (default float32, as GPU implementations train; float64: "
+                        "the reference's exact arithmetic; docs/performance.md)")
     t.add_argument("--background", default="black", choices=sorted(BACKGROUNDS))
     t.add_argument("--loss-form", default="l1_plus", choices=LOSS_FORMS)
     t.add_argument("--lambda-dssim", type=float, default=0.2)
