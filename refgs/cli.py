@@ -78,7 +78,9 @@ def build_parser() -> argparse.ArgumentParser:
     m = sub.add_parser("demo", help="3DGS against FM on 3 views of the packaged demo scene: "
                                     "table and comparison picture")
     m.add_argument("--out", help="output folder (default refgs-demo-<time>)")
-    m.add_argument("--iters", type=int, default=demo.DEMO_ITERS)
+    m.add_argument("--iters", type=int, default=None,
+                   help=f"default {demo.DEMO_ITERS} (fast backend), {demo.DEMO_ITERS_REFERENCE} "
+                        "(reference)")
     m.add_argument("--backend", default=None, help="default: fast when numba is installed")
     m.add_argument("--seed", type=int, default=0)
     m.add_argument("--quiet", action="store_true")

@@ -11,7 +11,7 @@ train-view point cloud and seed, through ``refgs.runs.train``; the held-out view
     DIR/3dgs/, DIR/fm/   the two run directories (refgs.runs; ``refgs eval`` / ``refgs render``)
 
 The fast backend (refgs.fast) is used whenever numba is installed, else the numpy reference
-(about 20 times slower; then pass fewer ``--iters``).
+(about 20 times slower; DEMO_ITERS_REFERENCE iterations unless ``--iters`` says otherwise).
 
 Test PSNR is recorded every T/20 iterations, at the iteration *before* each multiple: FM re-initialises the Gaussians' shape and resets their opacity at
 multiples of its re-initialisation interval (paper, Method; refgs.methods.flat_minima_method),
@@ -37,6 +37,8 @@ DEMO_VIEWS = 3
 #: iterations of each of the two runs (chosen so that both finish in about a minute on 2 cores
 #: with the fast backend; README)
 DEMO_ITERS = 1000
+#: the same without numba (the numpy reference is about 20 times slower: a few minutes)
+DEMO_ITERS_REFERENCE = 200
 #: the two methods compared, in the picture's order
 DEMO_METHODS = ("3dgs", "fm")
 #: The paper's 10k-iteration protocol (DropGaussian's schedule, docs/spec/training.md; the FM
@@ -145,8 +147,8 @@ def summary_table(metrics: dict) -> str:
     return "\n".join(lines)
 
 
-def run_demo(out: str | Path | None = None, iters: int = DEMO_ITERS, backend: str | None = None,
-             seed: int = 0, progress: bool = True) -> dict:
+def run_demo(out: str | Path | None = None, iters: int | None = None,
+             backend: str | None = None, seed: int = 0, progress: bool = True) -> dict:
     """Train DEMO_METHODS on DEMO_VIEWS views of the demo scene into ``out`` (default
     ``refgs-demo-<time>``), write the comparison picture and print the table.  Returns
     {"metrics": label -> metrics.json, "figure": path, "seconds": wall time}."""
@@ -154,6 +156,8 @@ def run_demo(out: str | Path | None = None, iters: int = DEMO_ITERS, backend: st
 
     t0 = time.perf_counter()
     backend = backend or default_backend()
+    if iters is None:
+        iters = DEMO_ITERS if backend == "fast" else DEMO_ITERS_REFERENCE
     out = Path(out) if out else Path(f"refgs-demo-{time.strftime('%Y%m%d-%H%M%S')}")
     if progress:
         print(f"refgs demo: {DEMO_VIEWS} views of the packaged scene, {iters} iterations of "
@@ -176,5 +180,5 @@ def run_demo(out: str | Path | None = None, iters: int = DEMO_ITERS, backend: st
 
 
 __all__ = ["run_demo", "demo_config", "demo_schedule", "comparison_figure", "summary_table",
-           "default_backend", "DEMO_VIEWS", "DEMO_ITERS", "DEMO_METHODS", "PROTOCOL_ITERS",
+           "default_backend", "DEMO_VIEWS", "DEMO_ITERS", "DEMO_ITERS_REFERENCE", "DEMO_METHODS", "PROTOCOL_ITERS",
            "PROTOCOL_SCHEDULE", "DEMO_SCENE_SIZE", "FIGURE_FILE"]
