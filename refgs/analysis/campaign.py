@@ -25,6 +25,7 @@ from pathlib import Path, PurePath
 import numpy as np
 
 from ..errors import ConfigError
+from ..runs import CONFIG_FILE, METRICS_FILE
 from .stats import ALPHA, CONFIDENCE, MAX_RUNS_NEEDED, POWER, excludes_zero, paired_stats
 from .tables import method_label, read_run_json
 
@@ -78,7 +79,7 @@ def campaign_run(folder: Path, config: dict) -> CampaignRun:
     """The CampaignRun of a campaign record; ConfigError naming the record when its settings
     are not a cell of the grid."""
     s = config.get("settings")
-    where = f"{folder / 'config.json'}: made by {CAMPAIGN_GRID} but"
+    where = f"{folder / CONFIG_FILE}: made by {CAMPAIGN_GRID} but"
     if not isinstance(s, dict):
         raise ConfigError(f"{where} has no 'settings' object")
     try:
@@ -91,7 +92,7 @@ def campaign_run(folder: Path, config: dict) -> CampaignRun:
         raise ConfigError(f"{where} scene {cell[0]}, views {cell[1]}, method {cell[2]}, seed "
                           f"{cell[3]}{', ' + str(other) if other else ''} is not a cell of the "
                           "campaign (CAMPAIGN_* in refgs/analysis/campaign.py)")
-    return CampaignRun(folder.name, *cell, read_run_json(folder / "metrics.json"))
+    return CampaignRun(folder.name, *cell, read_run_json(folder / METRICS_FILE))
 
 
 def load_campaign(records_dir: str | Path) -> list[CampaignRun]:
@@ -101,7 +102,7 @@ def load_campaign(records_dir: str | Path) -> list[CampaignRun]:
         raise ConfigError(f"{records_dir}: not a folder (expected results/records)")
     out, seen = [], {}
     for folder in sorted(p for p in Path(records_dir).iterdir() if p.is_dir()):
-        if not (folder / "config.json").is_file():
+        if not (folder / CONFIG_FILE).is_file():
             continue
         config = read_run_json(folder / "config.json")
         if not made_by_campaign(config):

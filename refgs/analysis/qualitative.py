@@ -29,6 +29,7 @@ import numpy as np
 
 from ..errors import ConfigError, RefgsError
 from ..io.atomic import atomic_path
+from ..runs import CONFIG_FILE, RENDER_DIR
 from .tables import method_label, read_run_json
 
 #: Side of the crop in pixels (our choice: an eighth of the 504-pixel width of LLFF images_8).
@@ -56,15 +57,15 @@ class CompareRun:
 def load_compare_run(run_dir: str | Path) -> CompareRun:
     """The CompareRun of a run directory; ConfigError naming the file."""
     run_dir = Path(run_dir).absolute()
-    config = read_run_json(run_dir / "config.json")
+    config = read_run_json(run_dir / CONFIG_FILE)
     s = config.get("settings")
     names = config.get("test_images")
     if not isinstance(s, dict) or not isinstance(names, list) or not names:
-        raise ConfigError(f"{run_dir / 'config.json'}: expected 'settings' and 'test_images'")
+        raise ConfigError(f"{run_dir / CONFIG_FILE}: expected 'settings' and 'test_images'")
     try:
         return CompareRun(run_dir, s, method_label(s), int(s["seed"]), names)
     except (KeyError, TypeError, ValueError) as exc:
-        raise ConfigError(f"{run_dir / 'config.json'}: settings lack seed ({exc})") from None
+        raise ConfigError(f"{run_dir / CONFIG_FILE}: settings lack seed ({exc})") from None
 
 
 def group_runs(runs: list[CompareRun], seed: int) -> dict[tuple, list[CompareRun]]:
@@ -93,7 +94,7 @@ def render_path(run: CompareRun, view: int) -> Path:
     """The saved render of the ``view``-th test view; ConfigError if out of range or missing."""
     if not 0 <= view < len(run.test_images):
         raise ConfigError(f"--view {view}: {run.dir} has {len(run.test_images)} test views")
-    png = run.dir / "renders" / "test" / (Path(run.test_images[view]).stem + ".png")
+    png = run.dir / RENDER_DIR / "test" / (Path(run.test_images[view]).stem + ".png")
     if not png.is_file():
         raise ConfigError(f"{png}: not found (render it with: refgs render {run.dir})")
     return png
