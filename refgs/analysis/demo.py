@@ -13,9 +13,10 @@ train-view point cloud and seed, through ``refgs.runs.train``; the held-out view
 The fast backend (refgs.fast) is used whenever numba is installed, else the numpy reference
 (about 20 times slower; DEMO_ITERS_REFERENCE iterations unless ``--iters`` says otherwise).
 
-Test PSNR is recorded every T/20 iterations, at the iteration *before* each multiple: FM re-initialises the Gaussians' shape and resets their opacity at
-multiples of its re-initialisation interval (paper, Method; refgs.methods.flat_minima_method),
-so a test render taken just after one shows the reset, not what training has reached.
+Test PSNR is recorded every T/20 iterations, at the iteration *before* each multiple: FM
+re-initialises the Gaussians' shape and resets their opacity at multiples of its
+re-initialisation interval (paper, Method; refgs.methods.flat_minima_method), so a test render
+taken just after one shows the reset, not what training has reached.
 """
 from __future__ import annotations
 
@@ -34,8 +35,8 @@ from .. import runs
 
 #: sparse views trained (the paper's 3-view LLFF setting)
 DEMO_VIEWS = 3
-#: iterations of each of the two runs (chosen so that both finish in about a minute on 2 cores
-#: with the fast backend; README)
+#: iterations of each of the two runs (both together took 90 s on 2 cores with the fast backend,
+#: scene generation included; README)
 DEMO_ITERS = 1000
 #: the same without numba (the numpy reference is about 20 times slower: a few minutes)
 DEMO_ITERS_REFERENCE = 200
