@@ -18,7 +18,7 @@ from refgs.analysis.figures import make_figures
 from refgs.analysis.flatness import curve_key, group_over_seeds
 from refgs.analysis.stats import runs_needed
 from refgs.analysis.summary import (BEGIN_MARKER, END_MARKER, MAIN_BEGIN, MAIN_END, main,
-                                    split_document, summary_markdown)
+                                    main_markdown, split_document, summary_markdown)
 from refgs.errors import ConfigError
 
 GRID_COMMAND = ["refgs", "run-one", "/elsewhere/repo/experiments/paper_main.toml", "--out",
@@ -166,11 +166,13 @@ def test_update_rewrites_both_blocks(records, capsys):
                    f"{END_MARKER}\n")
     assert main([str(root), "--update", str(doc)]) == 0
     text = doc.read_text()
-    assert split_document(text, begin=MAIN_BEGIN, end=MAIN_END)[1].strip() == \
-        campaign_markdown(root).strip()
+    block = split_document(text, begin=MAIN_BEGIN, end=MAIN_END)[1].strip()
+    assert block == main_markdown(root).strip()
+    assert block.startswith(campaign_markdown(root).strip())
+    assert "### Flatness over training seeds" in block
     assert split_document(text)[1].strip() == summary_markdown(root).strip()
     assert main([str(root), "--main"]) == 0
-    assert capsys.readouterr().out == campaign_markdown(root)
+    assert capsys.readouterr().out == main_markdown(root)
 
 
 # --- the qualitative figure -----------------------------------------------------------------
@@ -303,3 +305,58 @@ def test_flatness_over_seeds_without_run_info_and_errors(tmp_path):
                           "a_s0 (x) (other.json)": curve([1, 2, 3], [1, 2, 3])})
     with pytest.raises(ConfigError, match="--over-seeds: give the flatness.json"):
         make_figures([tmp_path], out=tmp_path / "o", over_seeds=True)
+
+
+# --- the flatness over training seeds (refgs.analysis.campaign_flatness) -----------------------
+def write_flatness(root: Path, name: str, curves: dict, settings="flatness") -> Path:
+    """A flatness record: curves {campaign run name: (test means, train means)} over gamma 0, 1."""
+    folder = root / name
+    folder.mkdir(parents=True)
+    runs = {}
+    for run, (test, train) in curves.items():
+        scene, views, method, seed = run.split("_")
+        runs[f"{run} ({method}, t=10000)"] = {
+            "gammas": [0.0, 1.0], "settings": settings, "run": {
+                "name": run, "scene": scene, "views": int(views[1:]), "label": method,
+                "seed": int(seed[1:])},
+            "test": {"mean": test, "std": [0.0, 0.1], "all": [[test[0]], [test[1]]]},
+            "train": {"mean": train, "std": [0.0, 0.1], "all": [[train[0]], [train[1]]]}}
+    (folder / "flatness.json").write_text(json.dumps({"runs": runs}))
+    return folder
+
+
+def test_flatness_table_means_drops_and_paired_difference(records):
+    from refgs.analysis.campaign_flatness import flatness_markdown
+    root, _ = records
+    fm_drop, base_drop = [0.3, 0.5, 0.2], [1.5, 2.0, 1.9]
+    curves = {}
+    for s in range(3):
+        curves[f"fern_v3_fm_s{s}"] = ([21.0, 21.0 - fm_drop[s]], [30.0, 26.0])
+        curves[f"fern_v3_3dgs_s{s}"] = ([19.0, 19.0 - base_drop[s]], [35.0, 20.0])
+    curves["desk_v3_fm_s0"] = ([18.0, 17.0], [30.0, 25.0])       # not in FLATNESS_SCENES
+    write_flatness(root, "flat_a", {k: v for k, v in curves.items() if k.endswith("s0")})
+    write_flatness(root, "flat_b", {k: v for k, v in curves.items() if not k.endswith("s0")})
+    write_flatness(root, "flat_training", {"fern_v3_dropgaussian_s0": ([20.0, 19.0], [30.0, 29.0])},
+                   settings="training")                            # other settings: left out
+    md = flatness_markdown(root, load_campaign(root))
+    means = rows(md, "scene | views | method | n | test")
+    fm = means[("fern", "3", "fm")]
+    assert fm[3] == "3" and fm[4] == "21.00"
+    assert fm[5] == f"{np.mean([21.0 - d for d in fm_drop]):.2f} (γ = 1)"
+    assert fm[6] == ci_text(fm_drop, 2)[0]
+    assert fm[-1] == "`flat_a`, `flat_b`"
+    assert means[("fern", "3", "dropgaussian")][3:5] == ["0", "not analysed yet"]
+    diffs = rows(md, "scene | views | difference")
+    d = diffs[("fern", "3", "FM − 3DGS")]
+    text, p = ci_text(np.subtract(fm_drop, base_drop), 2)
+    assert d[3] == "3" and d[4] == text and d[5] == f"{p:.3f}"
+    assert diffs[("fern", "3", "FM − DropGaussian")][3:5] == ["0", "no pairs yet"]
+
+
+def test_flatness_table_refuses_two_curves_of_one_run(records):
+    from refgs.analysis.campaign_flatness import flatness_markdown
+    root, _ = records
+    write_flatness(root, "flat_a", {"fern_v3_fm_s0": ([21.0, 20.0], [30.0, 26.0])})
+    write_flatness(root, "flat_b", {"fern_v3_fm_s0": ([21.0, 20.5], [30.0, 26.0])})
+    with pytest.raises(ConfigError, match="fern_v3_fm_s0 also has a curve in flat_a"):
+        flatness_markdown(root, load_campaign(root))

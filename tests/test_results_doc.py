@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from refgs.analysis.campaign import campaign_markdown
 from refgs.analysis.summary import (BEGIN_MARKER, END_MARKER, MAIN_BEGIN, MAIN_END,
-                                    default_unrecorded, load_records, main, split_document,
+                                    default_unrecorded, load_records, main, main_markdown,
+                                    split_document,
                                     summary_markdown, with_block)
 from refgs.errors import ConfigError
 
@@ -30,7 +30,7 @@ def test_results_doc_summary_is_generated_from_the_records():
 def test_results_doc_main_block_is_generated_from_the_records():
     text = DOC.read_text(encoding="utf-8")
     _, block, _ = split_document(text, str(DOC), MAIN_BEGIN, MAIN_END)
-    assert block.strip() == campaign_markdown(RECORDS).strip(), \
+    assert block.strip() == main_markdown(RECORDS).strip(), \
         f"docs/results.md is out of date; run: {UPDATE}"
     # near the top: before the summary block
     assert text.index(MAIN_END) < text.index(BEGIN_MARKER)

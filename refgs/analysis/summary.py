@@ -20,7 +20,8 @@ row marked "no record".  Every number printed comes from a record.
 
 The records of the main campaign (``refgs.analysis.campaign``: made by the grid
 experiments/paper_main.toml) are left out of the families; they make their own block
-(``campaign.campaign_markdown``), printed with ``--main``.
+(``main_markdown``: ``campaign.campaign_markdown`` and the flatness over training seeds of
+``campaign_flatness.flatness_markdown``), printed with ``--main``.
 
 The output is Markdown; in docs/results.md the summary sits between ``BEGIN_MARKER`` and
 ``END_MARKER``, the campaign block between ``MAIN_BEGIN`` and ``MAIN_END``, and ``--update FILE``
@@ -41,7 +42,8 @@ import numpy as np
 
 from ..errors import ConfigError, RefgsError
 from ..io.atomic import atomic_write_text
-from .campaign import campaign_markdown, made_by_campaign
+from .campaign import campaign_markdown, load_campaign, made_by_campaign
+from .campaign_flatness import flatness_markdown
 from .tables import method_label
 
 BEGIN_MARKER = "<!-- summary:begin -->"
@@ -334,13 +336,20 @@ def with_block(text: str, markdown: str, name: str = "document", begin: str = BE
     return f"{before}\n\n{markdown.strip()}\n\n{after}"
 
 
+def main_markdown(records_dir: str | Path) -> str:
+    """The campaign block: the main tables (refgs.analysis.campaign) and the flatness over
+    training seeds (refgs.analysis.campaign_flatness)."""
+    return (campaign_markdown(records_dir).rstrip() + "\n\n"
+            + flatness_markdown(records_dir, load_campaign(records_dir)) + "\n")
+
+
 def updated_document(text: str, records_dir: str | Path, unrecorded: str | Path | None,
                      name: str = "document") -> str:
     """``text`` with its summary block, and its campaign block where it has MAIN_BEGIN or
     MAIN_END, rebuilt from the records."""
     text = with_block(text, summary_markdown(records_dir, unrecorded), name)
     if MAIN_BEGIN in text or MAIN_END in text:
-        text = with_block(text, campaign_markdown(records_dir), name, MAIN_BEGIN, MAIN_END)
+        text = with_block(text, main_markdown(records_dir), name, MAIN_BEGIN, MAIN_END)
     return text
 
 
@@ -371,7 +380,7 @@ def main(argv=None) -> int:
             text = path.read_text(encoding="utf-8")
             atomic_write_text(path, updated_document(text, args.records, unrecorded, str(path)))
         elif args.main:
-            sys.stdout.write(campaign_markdown(args.records))
+            sys.stdout.write(main_markdown(args.records))
         else:
             sys.stdout.write(summary_markdown(args.records, unrecorded))
     except RefgsError as exc:
@@ -381,7 +390,7 @@ def main(argv=None) -> int:
 
 
 __all__ = ["summary_markdown", "load_records", "load_unrecorded", "split_document", "with_block",
-           "updated_document", "default_unrecorded", "FAMILIES", "BEGIN_MARKER", "END_MARKER",
+           "updated_document", "main_markdown", "default_unrecorded", "FAMILIES", "BEGIN_MARKER", "END_MARKER",
            "MAIN_BEGIN", "MAIN_END", "main"]
 
 if __name__ == "__main__":
