@@ -360,3 +360,18 @@ def test_flatness_table_refuses_two_curves_of_one_run(records):
     write_flatness(root, "flat_b", {"fern_v3_fm_s0": ([21.0, 20.5], [30.0, 26.0])})
     with pytest.raises(ConfigError, match="fern_v3_fm_s0 also has a curve in flat_a"):
         flatness_markdown(root, load_campaign(root))
+
+
+def test_paper_table_sets_our_means_beside_the_papers(records):
+    from refgs.analysis.campaign_paper import PAPER, paper_markdown
+    root, psnr = records
+    md = paper_markdown(load_campaign(root))
+    fern = rows(md, "scene | paper's mean over")
+    row = fern[("fern 3-view", "LLFF 3-view, mean of 8 scenes", "PSNR")]
+    paper = PAPER[("fern", 3)][1]
+    assert row[3] == "3/3/3"
+    assert row[6] == f"{np.mean(psnr['fm']):.2f} / {paper['fm'][0]:.2f}"
+    assert row[7] == f"{np.mean(psnr['fm']) - np.mean(psnr['3dgs']):+.2f} / " \
+                     f"{paper['fm'][0] - paper['3dgs'][0]:+.2f}"
+    bonsai = fern[("bonsai 12-view", "Mip-NeRF 360 12-view, mean of 9 scenes", "LPIPS-VGG")]
+    assert bonsai[3] == "0/0/0" and bonsai[4] == f"- / {PAPER[('bonsai', 12)][1]['3dgs'][2]:.3f}"

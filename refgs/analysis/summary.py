@@ -42,8 +42,9 @@ import numpy as np
 
 from ..errors import ConfigError, RefgsError
 from ..io.atomic import atomic_write_text
-from .campaign import campaign_markdown, load_campaign, made_by_campaign
+from .campaign import campaign_markdown, load_campaign, made_by_campaign, prose
 from .campaign_flatness import flatness_markdown
+from .campaign_paper import paper_markdown
 from .tables import method_label
 
 BEGIN_MARKER = "<!-- summary:begin -->"
@@ -336,11 +337,20 @@ def with_block(text: str, markdown: str, name: str = "document", begin: str = BE
     return f"{before}\n\n{markdown.strip()}\n\n{after}"
 
 
+PAPER_HEADING = "### Beside the paper"
+PAPER_PROSE = ("The paper reports dataset means; fern and bonsai are one scene of each of its "
+               "datasets, desk and cup have no counterpart. Each cell: ours (mean over our "
+               "seeds) / the paper's; the differences are of means (their paired CIs: above).")
+
+
 def main_markdown(records_dir: str | Path) -> str:
-    """The campaign block: the main tables (refgs.analysis.campaign) and the flatness over
-    training seeds (refgs.analysis.campaign_flatness)."""
-    return (campaign_markdown(records_dir).rstrip() + "\n\n"
-            + flatness_markdown(records_dir, load_campaign(records_dir)) + "\n")
+    """The campaign block: the main tables (refgs.analysis.campaign), the paper's numbers
+    beside ours (refgs.analysis.campaign_paper) and the flatness over training seeds
+    (refgs.analysis.campaign_flatness)."""
+    runs = load_campaign(records_dir)
+    return "\n".join([campaign_markdown(records_dir).rstrip(), "", PAPER_HEADING, "",
+                      prose(PAPER_PROSE), "", paper_markdown(runs), "",
+                      flatness_markdown(records_dir, runs), ""])
 
 
 def updated_document(text: str, records_dir: str | Path, unrecorded: str | Path | None,
