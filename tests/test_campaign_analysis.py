@@ -375,3 +375,21 @@ def test_paper_table_sets_our_means_beside_the_papers(records):
                      f"{paper['fm'][0] - paper['3dgs'][0]:+.2f}"
     bonsai = fern[("bonsai 12-view", "Mip-NeRF 360 12-view, mean of 9 scenes", "LPIPS-VGG")]
     assert bonsai[3] == "0/0/0" and bonsai[4] == f"- / {PAPER[('bonsai', 12)][1]['3dgs'][2]:.3f}"
+
+
+def test_runs_of_the_campaign_code_outside_the_grid_have_their_own_family(tmp_path):
+    from refgs.analysis.campaign import CAMPAIGN_SOURCE_HASHES
+    root = tmp_path / "records"
+    older = write_record(root, method="3dgs", seed=2, psnr=19.3, command=["refgs", "train"],
+                         dtype="float64")
+    ours = write_record(root, method="3dgs", seed=0, psnr=19.55, command=["refgs", "train"],
+                        dtype="float64")
+    ours = ours.rename(root / "fern_v3_3dgs_f64_s0")
+    cfg = json.loads((ours / "config.json").read_text())
+    cfg["provenance"] = {"source_hash": CAMPAIGN_SOURCE_HASHES[0]}
+    (ours / "config.json").write_text(json.dumps(cfg))
+    md = summary_markdown(root)
+    own = md.split("### Made by the campaign's code, outside its grid", 1)[1].split("###", 1)[0]
+    assert "| fern | 3 | 3dgs, float64 | 0 | 19.55 |" in own and older.name not in own
+    fern = md.split("### Fern, 3 views", 1)[1]
+    assert f"`{older.name}`" in fern and "fern_v3_3dgs_f64_s0" not in fern

@@ -31,6 +31,10 @@ from .tables import method_label, read_run_json
 
 #: The grid of the campaign, as the tail of the path in a record's command.
 CAMPAIGN_GRID = "experiments/paper_main.toml"
+#: Source hashes (refgs.train.checkpoint.source_hash, in each record's provenance) of the
+#: campaign's training code: commit 1054ec1 and the commits since 1b670c0 that changed no file of
+#: refgs/ (docs/results.md, "One version of the code").
+CAMPAIGN_SOURCE_HASHES = ("f46384a1bad7227b",)
 #: The worker command of a grid run: ``refgs run-one GRID --out DIR --name NAME``.
 RUN_ONE = "run-one"
 #: (scene folder name, views) of the grid's two groups, in the table's order.
@@ -254,6 +258,6 @@ def campaign_markdown(records_dir: str | Path) -> str:
         "differences between scenes count as spread."), ""])
 
 
-__all__ = ["CAMPAIGN_GRID", "CAMPAIGN_SCENES", "CAMPAIGN_METHODS", "CAMPAIGN_SEEDS",
+__all__ = ["CAMPAIGN_GRID", "CAMPAIGN_SOURCE_HASHES", "CAMPAIGN_SCENES", "CAMPAIGN_METHODS", "CAMPAIGN_SEEDS",
            "CAMPAIGN_SETTINGS", "COMPARISONS", "MISSING", "NO_PAIRS", "CampaignRun",
            "made_by_campaign", "campaign_run", "load_campaign", "campaign_markdown"]

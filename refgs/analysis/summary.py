@@ -42,7 +42,8 @@ import numpy as np
 
 from ..errors import ConfigError, RefgsError
 from ..io.atomic import atomic_write_text
-from .campaign import campaign_markdown, load_campaign, made_by_campaign, prose
+from .campaign import (CAMPAIGN_SOURCE_HASHES, campaign_markdown, load_campaign,
+                       made_by_campaign, prose)
 from .campaign_flatness import flatness_markdown
 from .campaign_paper import paper_markdown
 from .tables import method_label
@@ -72,6 +73,8 @@ class Run:
     label: str
     seed: int
     metrics: dict
+    #: made by the campaign's training code (campaign.CAMPAIGN_SOURCE_HASHES) outside its grid
+    campaign_code: bool = False
 
 
 @dataclass(frozen=True)
@@ -101,9 +104,15 @@ def plain(label: str) -> bool:
     return "+" not in label and "[" not in label
 
 
+#: The family of the runs the campaign's training code made outside its grid (e.g. the float64
+#: control of docs/performance.md): listed apart, not mixed with older code's runs of the same
+#: settings.
+CAMPAIGN_CODE_FAMILY = Family("Made by the campaign's code, outside its grid",
+                              lambda s, v, t, m: False)
 #: The families, in the order of the document; a run goes to the first that selects it, and
 #: "Other runs" catches whatever none of the others takes.
 FAMILIES = (
+    CAMPAIGN_CODE_FAMILY,
     Family("Fern, 3 views: the three methods over seeds",
            lambda s, v, t, m: s == "fern" and v == 3 and t == PROTOCOL_ITERS and plain(m)),
     Family("Fern, 6 and 9 views",
@@ -141,11 +150,16 @@ def load_run(folder: Path, config: dict | None = None) -> Run:
     if not isinstance(settings, dict):
         raise ConfigError(f"{folder / 'config.json'}: no 'settings' object")
     try:
+        campaign_code = (config.get("provenance") or {}).get("source_hash") \
+            in CAMPAIGN_SOURCE_HASHES
+        label = method_label(settings)
+        if campaign_code:                   # these rows compare training settings: name the dtype
+            label = f"{label}, {settings['dtype']}"
         return Run(folder.name, Path(settings["scene"]).name, int(settings["views"]),
-                   int(settings["iters"]), method_label(settings), int(settings["seed"]), metrics)
+                   int(settings["iters"]), label, int(settings["seed"]), metrics, campaign_code)
     except (KeyError, TypeError, ValueError) as exc:
-        raise ConfigError(f"{folder / 'config.json'}: settings lack scene, views, iters or seed "
-                          f"({exc})") from None
+        raise ConfigError(f"{folder / 'config.json'}: settings lack scene, views, iters, seed or "
+                          f"dtype ({exc})") from None
 
 
 def load_records(records_dir: str | Path) -> tuple[list[Run], dict[str, dict]]:
@@ -302,7 +316,9 @@ def summary_markdown(records_dir: str | Path, unrecorded: str | Path | None = No
     missing = load_unrecorded(unrecorded) if unrecorded is not None else []
     per_family = [([], []) for _ in FAMILIES]
     for r in runs:
-        per_family[family_of(r.scene, r.views, r.iters, r.label)][0].append(r)
+        k = (FAMILIES.index(CAMPAIGN_CODE_FAMILY) if r.campaign_code
+             else family_of(r.scene, r.views, r.iters, r.label))
+        per_family[k][0].append(r)
     for u in missing:
         per_family[family_of(u.scene, u.views, u.iters, u.label)][1].append(u)
     parts = []
