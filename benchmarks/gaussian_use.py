@@ -17,42 +17,16 @@ import argparse
 import warnings
 
 import numpy as np
-from numba import njit
+from fragments import blended_fragments        # benchmarks/fragments.py (run as a script)
 
 #: total blending weight per training view below which a Gaussian counts as negligible (a
 #: hundredth of a pixel's worth of colour per view: below an 8-bit step over the whole image)
 TINY_WEIGHT = 1e-3
 
 
-@njit(cache=False)
-def _blended(gauss, offsets, last, means2d, conics, opac, cap, amin, gx, tile, count, weight):
-    """Adds, per Gaussian, its blended fragments (count) and their weights a T (weight), in
-    float64, walking each pixel's live tile list up to its last blended slot."""
-    H, W = last.shape
-    for t in range(offsets.size - 1):
-        ty, tx = t // gx, t % gx
-        start = offsets[t]
-        for i in range(ty * tile, min(H, ty * tile + tile)):
-            for j in range(tx * tile, min(W, tx * tile + tile)):
-                T = 1.0
-                for s in range(last[i, j]):
-                    g = gauss[start + s]
-                    dx = means2d[g, 0] - (j + 0.5)
-                    dy = means2d[g, 1] - (i + 0.5)
-                    p = -0.5 * (conics[g, 0] * dx * dx + conics[g, 2] * dy * dy) \
-                        - conics[g, 1] * dx * dy
-                    if p <= 0.0:
-                        a = min(cap, opac[g] * np.exp(p))
-                        if a >= amin:
-                            count[g] += 1
-                            weight[g] += a * T
-                            T *= 1.0 - a
-
-
 def gaussian_use(run_dir) -> dict:
     """The counts of one run (keys as printed by :func:`main`)."""
     from refgs import fast, runs
-    from refgs.constants import ALPHA_MIN, TILE_SIZE
     from refgs.train.schedule import sh_degree_at
     from refgs.types import RenderConfig
 
@@ -67,13 +41,10 @@ def gaussian_use(run_dir) -> dict:
                           sh_degree=sh_degree_at(trainer.t, trainer.cfg.sh_degree))
     for view in trainer.train_views:
         out = fast.render(g, view.camera, config)
-        c = out.cache
-        W = out.alpha.shape[1]
-        _blended(c["lists"]["gauss"], c["lists"]["offsets"], c["last"],
-                 np.asarray(c["means2d_compositing"], np.float64), out.conics.astype(np.float64),
-                 out.opacities.astype(np.float64), float(c["profile"].alpha_max), ALPHA_MIN,
-                 -(-W // TILE_SIZE), TILE_SIZE, count, weight)
-        intersections += np.bincount(c["lists"]["gauss"], minlength=n)
+        c, w = blended_fragments(out)
+        count += c
+        weight += w
+        intersections += np.bincount(out.cache["lists"]["gauss"], minlength=n)
     unused = count == 0
     tiny = weight < TINY_WEIGHT * len(trainer.train_views)
     return {"run": str(run_dir), "t": trainer.t, "gaussians": n,

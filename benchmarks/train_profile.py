@@ -49,6 +49,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
+from fragments import blended_fragments        # benchmarks/fragments.py (run as a script)
 
 #: floating-point operations per blended pair, forward + backward, counted from refgs.fast's
 #: compositing lanes (refgs/fast/kernels.py): forward 9 (power) + 21 (exp: range reduction and a
@@ -174,34 +175,9 @@ def count_pairs(out) -> tuple[int, int]:
     slot, in float64), and the (pixel, slot) pairs the screen hands to the forward's lanes (row
     lists or half-row masks; an upper bound: a row stops once its pixels have; 0 if the render
     keeps neither)."""
-    from numba import njit
-
-    @njit(cache=False)
-    def blended(gauss, offsets, last, means2d, conics, opac, gx, tile):
-        H, W = last.shape
-        n = 0
-        for t in range(offsets.size - 1):
-            ty, tx = t // gx, t % gx
-            start = offsets[t]
-            for i in range(ty * tile, min(H, ty * tile + tile)):
-                for j in range(tx * tile, min(W, tx * tile + tile)):
-                    for s in range(last[i, j]):
-                        g = gauss[start + s]
-                        dx = means2d[g, 0] - (j + 0.5)
-                        dy = means2d[g, 1] - (i + 0.5)
-                        p = -0.5 * (conics[g, 0] * dx * dx + conics[g, 2] * dy * dy) \
-                            - conics[g, 1] * dx * dy
-                        if p <= 0.0 and min(0.99, opac[g] * np.exp(p)) >= 1.0 / 255.0:
-                            n += 1
-        return n
-
     from refgs.constants import TILE_SIZE
     c = out.cache
-    H, W = out.alpha.shape
-    gx = -(-W // TILE_SIZE)
-    m2 = np.asarray(c.get("means2d_compositing", out.means2d), np.float64)
-    n = blended(c["lists"]["gauss"], c["lists"]["offsets"], c["last"], m2,
-                out.conics.astype(np.float64), out.opacities.astype(np.float64), gx, TILE_SIZE)
+    n = int(blended_fragments(out)[0].sum())
     if "row_mask" in c:                     # per intersection, the half rows its screen kept
         m = c["row_mask"].astype(np.int64)
         half = TILE_SIZE // 2

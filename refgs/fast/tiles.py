@@ -93,38 +93,66 @@ def radix_argsort(keys, nbits):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def tile_counts(lo, hi, order, rect, rect_off, live, gx, counts):
-    """counts[t] = number of Gaussians of ``order`` whose tile rectangle holds tile t and that are
-    live there (``live``, :func:`tile_alive`), for the tiles of tile rows lo..hi (the first pass
-    of :func:`build_tile_lists`)."""
+def rects_in_order(order, rect):
+    """rect[order] (V, 4) int64: the tile rectangles of the visible Gaussians in depth order, so
+    that the passes of :func:`build_tile_lists` read them front to back, not scattered."""
+    out = np.empty((order.size, 4), np.int64)
     for k in range(order.size):
         g = order[k]
-        x0, x1, y0 = rect[g, 0], rect[g, 1], rect[g, 2]
-        for ty in range(max(lo, y0), min(hi, rect[g, 3])):
-            base = rect_off[k] + (ty - y0) * (x1 - x0) - x0
-            for tx in range(x0, x1):
-                if live[base + tx]:
-                    counts[ty * gx + tx] += 1
+        for j in range(4):
+            out[k, j] = rect[g, j]
+    return out
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def tile_fill(lo, hi, order, rect, rect_off, live, gx, cursor, full, gauss, pos):
-    """The second pass for tile rows lo..hi: each Gaussian of ``order``, in that order, appended
-    to the lists of the tiles where it is live (cursor[t]: next free position of tile t's list),
-    with pos = its position in the tile's full list (every Gaussian whose rectangle holds the
-    tile, live or not; full[t] counts them), which is what n_contrib reports (RAS-06)."""
-    for k in range(order.size):
-        g = order[k]
-        x0, x1, y0 = rect[g, 0], rect[g, 1], rect[g, 2]
-        for ty in range(max(lo, y0), min(hi, rect[g, 3])):
-            base = rect_off[k] + (ty - y0) * (x1 - x0) - x0
+def tile_counts(lo, hi, chunk, rect_s, rect_off, live, gx, counts, full):
+    """The first pass of :func:`build_tile_lists` for the Gaussians order[lo:hi], into row
+    c = lo // chunk of counts and full (C, n_tiles) int64: counts[c, t] += how many of them are
+    live in tile t (``live``, :func:`tile_alive`), full[c, t] += how many hold t in their
+    rectangle.  rect_s: :func:`rects_in_order`."""
+    c = lo // chunk
+    for k in range(lo, hi):
+        x0, x1, y0, y1 = rect_s[k, 0], rect_s[k, 1], rect_s[k, 2], rect_s[k, 3]
+        i = rect_off[k]
+        for ty in range(y0, y1):
+            row = ty * gx
             for tx in range(x0, x1):
-                t = ty * gx + tx
-                if live[base + tx]:
-                    gauss[cursor[t]] = g
-                    pos[cursor[t]] = full[t]
-                    cursor[t] += 1
-                full[t] += 1
+                counts[c, row + tx] += live[i]
+                full[c, row + tx] += 1
+                i += 1
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def tile_fill(lo, hi, chunk, order, rect_s, rect_off, live, gx, cursor, full, gauss, pos):
+    """The second pass for the Gaussians order[lo:hi], in that order, with row c = lo // chunk
+    of cursor and full (C, n_tiles): each Gaussian appended to the lists of the tiles where it is
+    live (cursor[c, t]: this chunk's next free position in tile t's list) with pos = its position
+    in the tile's full list (every Gaussian whose rectangle holds the tile, live or not; full[c, t]
+    starts at the number of those in the chunks before), which is what n_contrib reports
+    (RAS-06)."""
+    c = lo // chunk
+    for k in range(lo, hi):
+        g = order[k]
+        x0, x1, y0, y1 = rect_s[k, 0], rect_s[k, 1], rect_s[k, 2], rect_s[k, 3]
+        i = rect_off[k]
+        for ty in range(y0, y1):
+            row = ty * gx
+            for tx in range(x0, x1):
+                t = row + tx
+                if live[i]:
+                    j = cursor[c, t]
+                    gauss[j] = g
+                    pos[j] = full[c, t]
+                    cursor[c, t] = j + 1
+                full[c, t] += 1
+                i += 1
+
+
+def chunk_starts(counts, full, offsets):
+    """(cursor, full_start) (C, n_tiles) for :func:`tile_fill` from the first pass' per-chunk
+    counts: chunk c's lists start after every earlier chunk's entries of the same tile."""
+    cursor = offsets[:-1] + (np.cumsum(counts, axis=0) - counts)
+    return cursor, np.cumsum(full, axis=0) - full
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -204,7 +232,6 @@ def tile_alive(lo, hi, order, rect, rect_off, means2d, conics, opac, eps, live):
                 live[row + tx] = (x_lo <= tx * T + (T - 1) + 0.5) & (x_hi >= tx * T + 0.5)
 
 
-@njit(cache=True, error_model="numpy")
 def build_tile_lists(order, rect, n_tiles, gx, rect_off, live):
     """Per-tile Gaussian lists in depth order (RAS-01, RAS-02), of the live intersections.
 
@@ -212,20 +239,20 @@ def build_tile_lists(order, rect, n_tiles, gx, rect_off, live):
     max exclusive; rect_off (V+1,) int64: start of order[k]'s rectangle in ``live`` (row-major),
     live (rect_off[V],) bool (all True: the full lists of the spec).  Returns (gauss (P,) int64,
     offsets (n_tiles+1,) int64, pos (P,) int32): tile t's list is gauss[offsets[t]:offsets[t+1]],
-    pos the positions in the full lists.  (refgs.fast.render runs the passes over bands of tile
-    rows in parallel, with the same result.)
+    pos the positions in the full lists.  (refgs.fast.render runs both passes over chunks of the
+    Gaussians in parallel, with the same result: a chunk's entries of a tile go after those of
+    the chunks before, :func:`chunk_starts`.)
     """
-    gy = n_tiles // gx
-    counts = np.zeros(n_tiles, np.int64)
-    tile_counts(0, gy, order, rect, rect_off, live, gx, counts)
+    V = order.size
+    rect_s = rects_in_order(order, rect)
+    counts, full = np.zeros((1, n_tiles), np.int64), np.zeros((1, n_tiles), np.int64)
+    tile_counts(0, V, max(V, 1), rect_s, rect_off, live, gx, counts, full)
     offsets = np.zeros(n_tiles + 1, np.int64)
-    for t in range(n_tiles):
-        offsets[t + 1] = offsets[t] + counts[t]
-    cursor = offsets[:-1].copy()
-    full = np.zeros(n_tiles, np.int64)
-    gauss = np.empty(offsets[n_tiles], np.int64)
-    pos = np.empty(offsets[n_tiles], np.int32)
-    tile_fill(0, gy, order, rect, rect_off, live, gx, cursor, full, gauss, pos)
+    np.cumsum(counts[0], out=offsets[1:])
+    cursor, full_start = chunk_starts(counts, full, offsets)
+    gauss = np.empty(int(offsets[n_tiles]), np.int64)
+    pos = np.empty(int(offsets[n_tiles]), np.int32)
+    tile_fill(0, V, max(V, 1), order, rect_s, rect_off, live, gx, cursor, full_start, gauss, pos)
     return gauss, offsets, pos
 
 
