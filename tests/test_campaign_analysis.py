@@ -4,6 +4,7 @@ made-up records, renders and flatness files (FM-12, FM-14, FM-15, FM-16)."""
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +15,7 @@ from scipy import stats
 from refgs.analysis import qualitative
 from refgs.analysis.campaign import (MISSING, NO_PAIRS, campaign_markdown, load_campaign,
                                      made_by_campaign)
+from refgs.analysis.campaign_compute import compute_markdown, segments, union_seconds
 from refgs.analysis.figures import make_figures
 from refgs.analysis.flatness import curve_key, group_over_seeds
 from refgs.analysis.stats import runs_needed
@@ -33,8 +35,10 @@ def write_record(root: Path, scene="fern", views=3, method="fm", seed=0, psnr=20
     s = {"scene": f"/data/{scene}", "views": views, "iters": 10000, "seed": seed, "method": method,
          "method_params": {}, "backend": "fast", "images": "images_8", **settings}
     cmd = GRID_COMMAND + [name] if command is None else command
-    (folder / "config.json").write_text(json.dumps({"command": cmd, "settings": s}))
+    (folder / "config.json").write_text(json.dumps({"command": cmd, "settings": s,
+                                                    "started": "2026-12-05T10:00:00+0000"}))
     (folder / "metrics.json").write_text(json.dumps({"psnr": psnr, "ssim": ssim, "lpips_vgg": lpips}))
+    (folder / "history.json").write_text(json.dumps({"iter_seconds": [1.0] * 60}))
     return folder
 
 
@@ -137,9 +141,7 @@ def test_grid_records_outside_the_campaign_are_refused(tmp_path):
     write_record(tmp_path, views=6)
     with pytest.raises(ConfigError, match=r"fern_v6_fm_s0/config\.json: made by .* not a cell"):
         campaign_markdown(tmp_path)
-    (tmp_path / "fern_v6_fm_s0" / "config.json").unlink()
-    (tmp_path / "fern_v6_fm_s0" / "metrics.json").unlink()
-    (tmp_path / "fern_v6_fm_s0").rmdir()
+    shutil.rmtree(tmp_path / "fern_v6_fm_s0")
     write_record(tmp_path, iters=3000)
     with pytest.raises(ConfigError, match="'iters': 3000"):
         campaign_markdown(tmp_path)
@@ -173,6 +175,33 @@ def test_update_rewrites_both_blocks(records, capsys):
     assert split_document(text)[1].strip() == summary_markdown(root).strip()
     assert main([str(root), "--main"]) == 0
     assert capsys.readouterr().out == main_markdown(root)
+
+
+def test_compute_segments_follow_the_resumes_and_the_wall_time_counts_overlaps_once(tmp_path):
+    """A resumed run is one segment per start, each as long as its iterations' seconds; the wall
+    time is the union of every run's segments (refgs.analysis.campaign_compute)."""
+    config = {"started": "2026-12-05T10:00:00+0000",
+              "resumes": [{"from_iteration": 3, "time": "2026-12-05T12:00:00+0000"}]}
+    segs = segments(config, {"iter_seconds": [10.0, 20.0, 30.0, 5.0, 5.0]}, "run")
+    assert [(a.strftime("%H:%M:%S"), b.strftime("%H:%M:%S")) for a, b in segs] == [
+        ("10:00:00", "10:01:00"), ("12:00:00", "12:00:10")]
+    # two runs side by side count once; a gap between sessions not at all
+    other = segments({"started": "2026-12-05T10:00:30+0000"}, {"iter_seconds": [60.0]}, "b")
+    assert union_seconds(segs + other) == 90 + 10
+    with pytest.raises(ConfigError, match="run/config.json started"):
+        segments({"started": "yesterday"}, {"iter_seconds": [1.0]}, "run")
+    with pytest.raises(ConfigError, match="run/history.json: no iter_seconds"):
+        segments(config, {}, "run")
+
+
+def test_compute_table_sums_the_loops(records):
+    root, _ = records
+    md = compute_markdown(root, load_campaign(root))
+    cells = rows(md, "scene")
+    assert cells[("fern", "3", "fm")][3:5] == ["3", "1.0; 1.0-1.0"]
+    # 11 runs of 1 minute, all started at the same time: 11 minutes of compute, 1 of wall time
+    assert "11 runs; their training loops add up to 0.2 h of compute" in " ".join(md.split())
+    assert "is 0.0 h, between 2026-12-05 10:00 and 2026-12-05 10:01 UTC" in " ".join(md.split())
 
 
 # --- the qualitative figure -----------------------------------------------------------------

@@ -44,6 +44,7 @@ from ..errors import ConfigError, RefgsError
 from ..io.atomic import atomic_write_text
 from .campaign import (CAMPAIGN_SOURCE_HASHES, campaign_markdown, load_campaign,
                        made_by_campaign, prose)
+from .campaign_compute import compute_markdown
 from .campaign_flatness import flatness_markdown
 from .campaign_paper import paper_markdown
 from .tables import method_label
@@ -361,12 +362,14 @@ PAPER_PROSE = ("The paper reports dataset means; fern and bonsai are one scene o
 
 def main_markdown(records_dir: str | Path) -> str:
     """The campaign block: the main tables (refgs.analysis.campaign), the paper's numbers
-    beside ours (refgs.analysis.campaign_paper) and the flatness over training seeds
-    (refgs.analysis.campaign_flatness)."""
+    beside ours (refgs.analysis.campaign_paper), the flatness over training seeds
+    (refgs.analysis.campaign_flatness) and what the campaign cost
+    (refgs.analysis.campaign_compute)."""
     runs = load_campaign(records_dir)
     return "\n".join([campaign_markdown(records_dir).rstrip(), "", PAPER_HEADING, "",
                       prose(PAPER_PROSE), "", paper_markdown(runs), "",
-                      flatness_markdown(records_dir, runs), ""])
+                      flatness_markdown(records_dir, runs).rstrip(), "",
+                      compute_markdown(records_dir, runs)])
 
 
 def updated_document(text: str, records_dir: str | Path, unrecorded: str | Path | None,
