@@ -215,3 +215,16 @@ def test_fm16_bad_metric_is_a_one_line_error(tmp_path, capsys):
     err = capsys.readouterr().err
     assert err.startswith("refgs: error:") and "metrics.json" in err and "psnr" in err
     assert not (tmp_path / "out").exists()
+
+
+def test_forest_axis_spans_the_scene_intervals_not_a_wide_pooled_one():
+    """forest.png: the axis holds 0, every mean and the per-scene CIs; a pooled CI over a few
+    scenes (t with 1-2 degrees of freedom) is cut, not allowed to squash the scene rows."""
+    from refgs.analysis.tables import FOREST_MARGIN, forest_limits
+    rows = [{"mean_diff": 0.5, "ci95": [0.2, 0.9]}, {"mean_diff": -1.5, "ci95": [-2.0, -1.0]},
+            {"mean_diff": -0.5, "ci95": [-13.9, 12.9], "n_scenes": 2}, None,
+            {"mean_diff": 3.0, "ci95": None}]
+    lo, hi = forest_limits(rows)
+    pad = FOREST_MARGIN * 5.0
+    assert np.isclose(lo, -2.0 - pad) and np.isclose(hi, 3.0 + pad)
+    assert forest_limits([None]) == (-1.0, 1.0)

@@ -345,11 +345,32 @@ def plot(table: dict, path: Path) -> None:
     plt.close(fig)
 
 
+#: forest.png's x-axis spans the per-scene intervals, 0 and every mean, widened by this fraction
+#: of the span on each side; a pooled interval reaching beyond is cut at the edge (arrow) and
+#: printed (over two or three scenes a t interval can be ten times a scene's)
+FOREST_MARGIN = 0.12
+
+
+def forest_limits(entries: list) -> tuple[float, float]:
+    """The x-limits of one forest panel (FOREST_MARGIN) from its rows (None: no row)."""
+    xs = [0.0]
+    for c in entries:
+        if c is None:
+            continue
+        xs.append(c["mean_diff"])
+        if c["ci95"] is not None and "n_scenes" not in c:
+            xs += list(c["ci95"])
+    lo, hi = min(xs), max(xs)
+    pad = FOREST_MARGIN * (hi - lo) if hi > lo else 1.0
+    return lo - pad, hi + pad
+
+
 def forest(comp: dict, metrics, baseline: str, path: Path) -> None:
     """``forest.png``: per metric, each method's mean paired difference from the baseline with its
     95 % CI, grouped by scene, then the pooled rows (diamonds).  Green / red where the CI excludes
     0 and the method is better / worse (``LOWER_IS_BETTER``), grey otherwise; a hollow marker
-    without a bar where there is no interval (one pair)."""
+    without a bar where there is no interval (one pair).  The axis spans the per-scene intervals
+    (forest_limits); a wider pooled interval is cut there, with arrows and its numbers."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -362,6 +383,7 @@ def forest(comp: dict, metrics, baseline: str, path: Path) -> None:
                              sharey=True, squeeze=False)
     y = np.arange(len(keys))
     for ax, m in zip(axes[0], metrics):
+        lim = forest_limits([entries[k].get(m) for k in keys])
         for i, key in enumerate(keys):
             c = entries[key].get(m)
             if c is None:
@@ -373,8 +395,16 @@ def forest(comp: dict, metrics, baseline: str, path: Path) -> None:
                 ax.plot(c["mean_diff"], i, marker, mfc="none", mec=color)
             else:
                 lo, hi = c["ci95"]
-                ax.errorbar(c["mean_diff"], i, xerr=[[c["mean_diff"] - lo], [hi - c["mean_diff"]]],
-                            fmt=marker, color=color, capsize=3)
+                shown = (max(lo, lim[0]), min(hi, lim[1]))
+                ax.errorbar(c["mean_diff"], i, fmt=marker, color=color, capsize=3,
+                            xerr=[[c["mean_diff"] - shown[0]], [shown[1] - c["mean_diff"]]])
+                if shown != (lo, hi):          # a CI wider than the axis: arrows and its numbers
+                    for end, side in ((lo, 0), (hi, 1)):
+                        if end != shown[side]:
+                            ax.plot(shown[side], i, "<>"[side], color=color, ms=5)
+                    ax.annotate(f"[{lo:+.3g}, {hi:+.3g}]", (c["mean_diff"], i), xytext=(0, 5),
+                                textcoords="offset points", ha="center", fontsize=7, color=color)
+        ax.set_xlim(*lim)
         for i in range(1, len(keys)):
             if keys[i][0] != keys[i - 1][0]:
                 ax.axhline(i - 0.5, color="0.8", lw=0.8)
@@ -382,7 +412,6 @@ def forest(comp: dict, metrics, baseline: str, path: Path) -> None:
         ax.set_title(f"Δ{m} vs {baseline}, {CONFIDENCE:.0%} CI\n"
                      f"({'lower' if m in LOWER_IS_BETTER else 'higher'} is better)", fontsize=9)
         ax.grid(axis="x", alpha=0.3)
-        ax.margins(x=0.12)
         ax.xaxis.set_major_locator(plt.MaxNLocator(4))
     if keys:
         n = [next(iter(entries[k].values())) for k in keys]
