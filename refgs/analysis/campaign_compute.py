@@ -69,6 +69,8 @@ def union_seconds(intervals: list[tuple[datetime, datetime]]) -> float:
 
 def compute_markdown(records_dir: str | Path, runs: list[CampaignRun]) -> str:
     """The heading, the per-cell table and the campaign's totals for the records ``runs``."""
+    if not runs:
+        return "\n".join([COMPUTE_HEADING, "", "No campaign records yet.", ""])
     head = ["scene", "views", "method", "n", "training loop, min (mean; range)",
             "Gaussians at T (mean)", "peak RSS, GB (max)"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
@@ -93,8 +95,6 @@ def compute_markdown(records_dir: str | Path, runs: list[CampaignRun]) -> str:
                 f"{np.mean(loops):.1f}; {min(loops):.1f}-{max(loops):.1f}",
                 "n/a" if None in gaussians else f"{np.mean(gaussians):,.0f}",
                 "n/a" if None in rss else f"{max(rss):.2f}"]) + " |")
-    if not runs:
-        return "\n".join([COMPUTE_HEADING, "", "No campaign records yet.", ""])
     first = min(a for a, _ in all_segments)
     last = max(b for _, b in all_segments)
     wall = union_seconds(all_segments) / 3600

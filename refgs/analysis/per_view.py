@@ -26,7 +26,8 @@ import numpy as np
 
 from ..errors import ConfigError, RefgsError
 from ..runs import CONFIG_FILE, METRICS_FILE
-from .stats import CONFIDENCE, excludes_zero, paired_stats
+from .campaign import diff_cells
+from .stats import CONFIDENCE, paired_stats
 from .tables import method_label, read_run_json
 
 #: metrics.json per-view keys that can be compared, with the decimals shown
@@ -101,14 +102,7 @@ def row(label: str, pr: list, metric: str, idx, extra: str = "") -> str:
     dec = PER_VIEW_METRICS[metric]
     base = [float(_values(b, metric, idx).mean()) for b, _ in pr]
     meth = [float(_values(m, metric, idx).mean()) for _, m in pr]
-    st = paired_stats(np.subtract(meth, base))
-    d = f"{st['mean_diff']:+.{dec}f}"
-    if st["ci95"] is None:
-        diff, p = f"{d} ({st['note']})", "-"
-    else:
-        lo, hi = st["ci95"]
-        d = f"**{d}**" if excludes_zero(st["ci95"]) else d
-        diff, p = f"{d} [{lo:+.{dec}f}, {hi:+.{dec}f}]", f"{st['p_value']:.2g}"
+    diff, p, _ = diff_cells(paired_stats(np.subtract(meth, base)), dec)
     return f"| {label} |{extra} {np.mean(base):.{dec}f} | {np.mean(meth):.{dec}f} | {diff} | {p} |"
 
 
