@@ -168,6 +168,15 @@ def test_committed_grids_parse():
     assert main_grid.runs[0].cfg.scene == str(ROOT.parent / "shared" / "data" / "fern")
     views = load_grid(ROOT / "experiments" / "llff_views.toml")
     assert {r.cfg.views for r in views.runs} == {3, 6, 9} and len(views.runs) == 27
+    follow = load_grid(ROOT / "experiments" / "paper_followups.toml")
+    ablations = {r.name: r.cfg.method_params for r in follow.runs if r.cfg.views == 3}
+    assert sorted(ablations) == [f"fern_v3_fm_fm-no-{a}_s{s}" for a in ("reinit", "schedule")
+                                 for s in range(3)]
+    assert all(not p["reinit"] and p["schedule"] for n, p in ablations.items() if "reinit" in n)
+    assert all(p["reinit"] and not p["schedule"] for n, p in ablations.items() if "schedule" in n)
+    assert len(follow.runs) == 24 and {r.cfg.views for r in follow.runs} == {3, 6, 9}
+    assert all(r.cfg.iters == 10000 and r.cfg.backend == "fast" and r.cfg.images == "images_8"
+               for r in follow.runs)
 
 
 # --- a sweep with a bad scene -------------------------------------------------------------------
