@@ -422,3 +422,92 @@ def test_runs_of_the_campaign_code_outside_the_grid_have_their_own_family(tmp_pa
     assert "| fern | 3 | 3dgs, float64 | 0 | 19.55 |" in own and older.name not in own
     fern = md.split("### Fern, 3 views", 1)[1]
     assert f"`{older.name}`" in fern and "fern_v3_3dgs_f64_s0" not in fern
+
+
+# --- the follow-ups: ablations and more views (refgs.analysis.campaign_followups) ------------------
+FOLLOWUP_COMMAND = ["refgs", "run-one", "/elsewhere/repo/experiments/paper_followups.toml", "--out",
+                    "/elsewhere/repo/runs/paper_followups", "--name"]
+
+
+def write_followup(root: Path, name: str, source_hash=None, **kw) -> Path:
+    """A follow-up record named ``name``, made by the campaign's code unless ``source_hash``."""
+    from refgs.analysis.campaign import CAMPAIGN_SOURCE_HASHES
+    tmp = write_record(root / ".new", command=FOLLOWUP_COMMAND + [name], **kw)
+    folder = tmp.rename(root / name)
+    tmp.parent.rmdir()
+    cfg = json.loads((folder / "config.json").read_text())
+    cfg["provenance"] = {"source_hash": source_hash or CAMPAIGN_SOURCE_HASHES[0]}
+    (folder / "config.json").write_text(json.dumps(cfg))
+    return folder
+
+
+def test_followups_pair_ablations_with_the_campaigns_fm_and_views_by_seed(records, capsys):
+    from refgs.analysis.campaign_followups import followups_markdown
+    root, psnr = records
+    noreinit = [20.5, 20.9, 20.2]
+    for seed in range(3):
+        write_followup(root, f"fern_v3_fm_fm-no-reinit_s{seed}", seed=seed, psnr=noreinit[seed],
+                       method_params={"reinit": False})
+    v6 = {"fm": [24.0, 24.5], "3dgs": [23.0, 23.9]}
+    for m, vals in v6.items():
+        for seed, v in enumerate(vals):
+            write_followup(root, f"fern_v6_{m}_s{seed}", views=6, method=m, seed=seed, psnr=v)
+    md = followups_markdown(root)
+    means = rows(md, "method | views | n")
+    assert means[("FM w/o reinitialisation", "3", "3")][4] == mean_sd(noreinit)
+    assert means[("FM (main campaign)", "3", "3")][4] == mean_sd(psnr["fm"])
+    assert means[("FM w/o scheduling", "3", "0")][4] == MISSING
+    ablations, views = md.split("*Views, fern*")
+    means = rows(views, "method | views | n")
+    assert means[("DropGaussian", "6", "0")][4] == MISSING
+    assert "seed 2: " + MISSING in means[("FM", "6", "2")][-1]
+    diffs = {**rows(ablations, "scene | views | difference"),
+             **rows(views, "scene | views | difference")}
+    got = diffs[("fern", "3", "FM w/o reinitialisation − FM")]
+    want, p = ci_text([a - b for a, b in zip(noreinit, psnr["fm"])], 2)
+    assert got[3] == "3" and got[4] == want and got[5] == f"{p:.3f}"
+    assert diffs[("fern", "3", "FM w/o scheduling − FM")][4] == NO_PAIRS
+    want6, _ = ci_text([a - b for a, b in zip(v6["fm"], v6["3dgs"])], 2)
+    assert diffs[("fern", "6", "FM − 3DGS")][4] == want6
+    fm3, _ = ci_text([a - b for a, b in zip(psnr["fm"], psnr["3dgs"])], 2)
+    assert diffs[("fern", "3", "FM − 3DGS")][4] == fm3          # the main campaign's records
+    # the summary families leave them to this block; the command prints it
+    assert "fern_v6_fm_s0" not in summary_markdown(root)
+    assert main([str(root), "--followups"]) == 0 and capsys.readouterr().out == md
+
+
+def mean_sd(values):
+    a = np.asarray(values)
+    return f"{a.mean():.2f} ± {a.std(ddof=1):.2f}"
+
+
+def test_followups_refuse_other_cells_and_other_code(tmp_path):
+    from refgs.analysis.campaign_followups import followups_markdown
+    write_followup(tmp_path, "fern_v3_3dgs_s0", method="3dgs")     # 3 views: ablations only
+    with pytest.raises(ConfigError, match=r"fern_v3_3dgs_s0/config\.json: made by "
+                                          r"experiments/paper_followups\.toml .* not one of"):
+        followups_markdown(tmp_path)
+    shutil.rmtree(tmp_path / "fern_v3_3dgs_s0")
+    write_followup(tmp_path, "fern_v9_fm_s0", views=9, source_hash="0000000000000000")
+    with pytest.raises(ConfigError, match="source hash 0000000000000000 is not the main"):
+        followups_markdown(tmp_path)
+    shutil.rmtree(tmp_path / "fern_v9_fm_s0")
+    write_followup(tmp_path, "a", views=9)
+    write_followup(tmp_path, "b", views=9)
+    with pytest.raises(ConfigError, match="b: same views, method and seed as a"):
+        followups_markdown(tmp_path)
+
+
+def test_update_rewrites_the_followups_block(records):
+    from refgs.analysis.campaign_followups import followups_markdown
+    from refgs.analysis.summary import FOLLOWUPS_BEGIN, FOLLOWUPS_END
+    root, _ = records
+    write_followup(root, "fern_v9_fm_s0", views=9, psnr=26.0)
+    doc = root.parent / "doc.md"
+    doc.write_text(f"# t\n{BEGIN_MARKER}\nold\n{END_MARKER}\n{FOLLOWUPS_BEGIN}\nstale\n"
+                   f"{FOLLOWUPS_END}\nend\n")
+    assert main([str(root), "--update", str(doc)]) == 0
+    text = doc.read_text()
+    assert split_document(text, "doc", FOLLOWUPS_BEGIN, FOLLOWUPS_END)[1].strip() == \
+        followups_markdown(root).strip()
+    assert "stale" not in text and text.endswith("end\n")

@@ -9,7 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from refgs.analysis.summary import (BEGIN_MARKER, END_MARKER, MAIN_BEGIN, MAIN_END,
+from refgs.analysis.campaign_followups import followups_markdown
+from refgs.analysis.summary import (BEGIN_MARKER, END_MARKER, FOLLOWUPS_BEGIN, FOLLOWUPS_END,
+                                    MAIN_BEGIN, MAIN_END,
                                     default_unrecorded, load_records, main, main_markdown,
                                     split_document,
                                     summary_markdown, with_block)
@@ -34,6 +36,14 @@ def test_results_doc_main_block_is_generated_from_the_records():
         f"docs/results.md is out of date; run: {UPDATE}"
     # near the top: before the summary block
     assert text.index(MAIN_END) < text.index(BEGIN_MARKER)
+
+
+def test_results_doc_followups_block_is_generated_from_the_records():
+    text = DOC.read_text(encoding="utf-8")
+    _, block, _ = split_document(text, str(DOC), FOLLOWUPS_BEGIN, FOLLOWUPS_END)
+    assert block.strip() == followups_markdown(RECORDS).strip(), \
+        f"docs/results.md is out of date; run: {UPDATE}"
+    assert text.index(MAIN_END) < text.index(FOLLOWUPS_BEGIN) < text.index(BEGIN_MARKER)
 
 
 def test_every_record_is_in_the_results_doc():

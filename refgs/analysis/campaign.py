@@ -70,12 +70,13 @@ class CampaignRun:
     metrics: dict
 
 
-def made_by_campaign(config: dict) -> bool:
-    """Whether a run's config.json command is ``refgs run-one .../CAMPAIGN_GRID ...``."""
+def made_by_campaign(config: dict, grid_file: str = CAMPAIGN_GRID) -> bool:
+    """Whether a run's config.json command is ``refgs run-one .../<grid_file> ...`` (the
+    campaign's grid by default)."""
     cmd = config.get("command")
     if not isinstance(cmd, list) or len(cmd) < 3 or cmd[1] != RUN_ONE:
         return False
-    grid, tail = PurePath(str(cmd[2])).parts, PurePath(CAMPAIGN_GRID).parts
+    grid, tail = PurePath(str(cmd[2])).parts, PurePath(grid_file).parts
     return grid[-len(tail):] == tail
 
 
@@ -211,11 +212,16 @@ def means_table(runs: list[CampaignRun]) -> str:
     return "\n".join(lines)
 
 
-def diffs_table(runs: list[CampaignRun]) -> str:
+def diffs_head() -> list[str]:
+    """The header lines of a table of ``diff_row`` rows."""
     head = ["scene", "views", "difference", "pairs"]
     for _, t, _ in METRICS:
         head += [f"Δ {t} [{percent(CONFIDENCE)} CI]", f"p ({t})", f"runs needed ({t})"]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    return ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+
+
+def diffs_table(runs: list[CampaignRun]) -> str:
+    lines = diffs_head()
     names = {c: f"{DISPLAY[c[0]]} − {DISPLAY[c[1]]}" for c in COMPARISONS}
     for scene, views in CAMPAIGN_SCENES:
         for c in COMPARISONS:
@@ -260,4 +266,5 @@ def campaign_markdown(records_dir: str | Path) -> str:
 
 __all__ = ["CAMPAIGN_GRID", "CAMPAIGN_SOURCE_HASHES", "CAMPAIGN_SCENES", "CAMPAIGN_METHODS", "CAMPAIGN_SEEDS",
            "CAMPAIGN_SETTINGS", "COMPARISONS", "MISSING", "NO_PAIRS", "CampaignRun",
-           "made_by_campaign", "campaign_run", "load_campaign", "campaign_markdown"]
+           "made_by_campaign", "campaign_run", "load_campaign", "campaign_markdown", "diffs_head",
+           "diff_row", "pairs_of", "mean_std", "metric", "prose"]

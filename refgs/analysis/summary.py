@@ -1,6 +1,6 @@
 """The summary tables of docs/results.md, built from the committed records (FM-13, FM-15).
 
-    python -m refgs.analysis.summary results/records [--unrecorded FILE] [--main]
+    python -m refgs.analysis.summary results/records [--unrecorded FILE] [--main | --followups]
                                      [--update docs/results.md]
 
 Reads every record folder of ``results/records/`` (``refgs record``): a run's ``config.json``
@@ -21,11 +21,14 @@ row marked "no record".  Every number printed comes from a record.
 The records of the main campaign (``refgs.analysis.campaign``: made by the grid
 experiments/paper_main.toml) are left out of the families; they make their own block
 (``main_markdown``: ``campaign.campaign_markdown`` and the flatness over training seeds of
-``campaign_flatness.flatness_markdown``), printed with ``--main``.
+``campaign_flatness.flatness_markdown``), printed with ``--main``; so do those of its
+follow-ups (``campaign_followups``: the grid experiments/paper_followups.toml), printed with
+``--followups``.
 
 The output is Markdown; in docs/results.md the summary sits between ``BEGIN_MARKER`` and
-``END_MARKER``, the campaign block between ``MAIN_BEGIN`` and ``MAIN_END``, and ``--update FILE``
-rewrites both blocks in place (atomically; the campaign block only where FILE has its markers).
+``END_MARKER``, the campaign block between ``MAIN_BEGIN`` and ``MAIN_END``, the follow-ups'
+between ``FOLLOWUPS_BEGIN`` and ``FOLLOWUPS_END``, and ``--update FILE`` rewrites the blocks in
+place (atomically; the campaign and follow-up blocks only where FILE has their markers).
 tests/test_results_doc.py checks that the document's blocks are exactly this output.
 """
 from __future__ import annotations
@@ -45,6 +48,7 @@ from ..io.atomic import atomic_write_text
 from .campaign import (CAMPAIGN_SOURCE_HASHES, campaign_markdown, load_campaign,
                        made_by_campaign, prose)
 from .campaign_compute import compute_markdown
+from .campaign_followups import FOLLOWUPS_GRID, followups_markdown
 from .campaign_flatness import flatness_markdown
 from .campaign_paper import paper_markdown
 from .tables import method_label
@@ -53,6 +57,8 @@ BEGIN_MARKER = "<!-- summary:begin -->"
 END_MARKER = "<!-- summary:end -->"
 MAIN_BEGIN = "<!-- main:begin -->"
 MAIN_END = "<!-- main:end -->"
+FOLLOWUPS_BEGIN = "<!-- followups:begin -->"
+FOLLOWUPS_END = "<!-- followups:end -->"
 #: The paper's protocol length (the DropGaussian settings: T = 10,000 iterations); runs of another
 #: length carry "T = ..." in their method cell.
 PROTOCOL_ITERS = 10_000
@@ -164,8 +170,8 @@ def load_run(folder: Path, config: dict | None = None) -> Run:
 
 
 def load_records(records_dir: str | Path) -> tuple[list[Run], dict[str, dict]]:
-    """(runs, {record id: flatness.json}) of every folder of ``records_dir`` except the main
-    campaign's records; folders that are neither are refused (ConfigError naming the folder)."""
+    """(runs, {record id: flatness.json}) of every folder of ``records_dir`` except the records
+    of the main campaign and its follow-ups; folders that are neither are refused (ConfigError naming the folder)."""
     records_dir = Path(records_dir)
     if not records_dir.is_dir():
         raise ConfigError(f"{records_dir}: not a folder (expected results/records)")
@@ -173,7 +179,7 @@ def load_records(records_dir: str | Path) -> tuple[list[Run], dict[str, dict]]:
     for folder in sorted(p for p in records_dir.iterdir() if p.is_dir()):
         if (folder / "config.json").is_file():
             config = read_json(folder / "config.json")
-            if not made_by_campaign(config):
+            if not (made_by_campaign(config) or made_by_campaign(config, FOLLOWUPS_GRID)):
                 runs.append(load_run(folder, config))
         elif (folder / "flatness.json").is_file():
             flatness[folder.name] = read_json(folder / "flatness.json")
@@ -374,11 +380,15 @@ def main_markdown(records_dir: str | Path) -> str:
 
 def updated_document(text: str, records_dir: str | Path, unrecorded: str | Path | None,
                      name: str = "document") -> str:
-    """``text`` with its summary block, and its campaign block where it has MAIN_BEGIN or
-    MAIN_END, rebuilt from the records."""
+    """``text`` with its summary block, its campaign block where it has MAIN_BEGIN or MAIN_END
+    and its follow-ups' block where it has FOLLOWUPS_BEGIN or FOLLOWUPS_END, rebuilt from the
+    records."""
     text = with_block(text, summary_markdown(records_dir, unrecorded), name)
     if MAIN_BEGIN in text or MAIN_END in text:
         text = with_block(text, main_markdown(records_dir), name, MAIN_BEGIN, MAIN_END)
+    if FOLLOWUPS_BEGIN in text or FOLLOWUPS_END in text:
+        text = with_block(text, followups_markdown(records_dir), name, FOLLOWUPS_BEGIN,
+                          FOLLOWUPS_END)
     return text
 
 
@@ -396,9 +406,12 @@ def main(argv=None) -> int:
                          "beside the records folder, if present)")
     ap.add_argument("--main", action="store_true",
                     help="print the main campaign's block instead of the summary")
+    ap.add_argument("--followups", action="store_true",
+                    help="print the follow-ups' block (experiments/paper_followups.toml) instead")
     ap.add_argument("--update", metavar="FILE", default=None,
                     help=f"rewrite the blocks between {BEGIN_MARKER} and {END_MARKER} and (where "
-                         f"present) {MAIN_BEGIN} and {MAIN_END} of FILE instead of printing")
+                         f"present) {MAIN_BEGIN} and {MAIN_END}, {FOLLOWUPS_BEGIN} and "
+                         f"{FOLLOWUPS_END} of FILE instead of printing")
     args = ap.parse_args(argv)
     try:
         unrecorded = args.unrecorded or default_unrecorded(args.records)
@@ -410,6 +423,8 @@ def main(argv=None) -> int:
             atomic_write_text(path, updated_document(text, args.records, unrecorded, str(path)))
         elif args.main:
             sys.stdout.write(main_markdown(args.records))
+        elif args.followups:
+            sys.stdout.write(followups_markdown(args.records))
         else:
             sys.stdout.write(summary_markdown(args.records, unrecorded))
     except RefgsError as exc:
@@ -420,7 +435,7 @@ def main(argv=None) -> int:
 
 __all__ = ["summary_markdown", "load_records", "load_unrecorded", "split_document", "with_block",
            "updated_document", "main_markdown", "default_unrecorded", "FAMILIES", "BEGIN_MARKER", "END_MARKER",
-           "MAIN_BEGIN", "MAIN_END", "main"]
+           "MAIN_BEGIN", "MAIN_END", "FOLLOWUPS_BEGIN", "FOLLOWUPS_END", "main"]
 
 if __name__ == "__main__":
     sys.exit(main())
