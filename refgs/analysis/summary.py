@@ -171,7 +171,8 @@ def load_run(folder: Path, config: dict | None = None) -> Run:
 
 def load_records(records_dir: str | Path) -> tuple[list[Run], dict[str, dict]]:
     """(runs, {record id: flatness.json}) of every folder of ``records_dir`` except the records
-    of the main campaign and its follow-ups; folders that are neither are refused (ConfigError naming the folder)."""
+    of the main campaign and its follow-ups; folders that are neither are refused (ConfigError
+    naming the folder)."""
     records_dir = Path(records_dir)
     if not records_dir.is_dir():
         raise ConfigError(f"{records_dir}: not a folder (expected results/records)")
