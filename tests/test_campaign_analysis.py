@@ -494,7 +494,7 @@ def test_followups_refuse_other_cells_and_other_code(tmp_path):
     shutil.rmtree(tmp_path / "fern_v9_fm_s0")
     write_followup(tmp_path, "a", views=9)
     write_followup(tmp_path, "b", views=9)
-    with pytest.raises(ConfigError, match="b: same views, method and seed as a"):
+    with pytest.raises(ConfigError, match="b: same scene, views, method and seed as a"):
         followups_markdown(tmp_path)
 
 

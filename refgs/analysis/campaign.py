@@ -80,11 +80,12 @@ def made_by_campaign(config: dict, grid_file: str = CAMPAIGN_GRID) -> bool:
     return grid[-len(tail):] == tail
 
 
-def campaign_run(folder: Path, config: dict) -> CampaignRun:
-    """The CampaignRun of a campaign record; ConfigError naming the record when its settings
-    are not a cell of the grid."""
+def record_cell(folder: Path, config: dict, grid_file: str) -> tuple[tuple, dict, str]:
+    """(cell (scene, views, method label, seed), the grid-wide settings that differ from
+    CAMPAIGN_SETTINGS, the error prefix naming the record) of a record made by ``grid_file``;
+    ConfigError naming the record when its settings lack a part of the cell."""
     s = config.get("settings")
-    where = f"{folder / CONFIG_FILE}: made by {CAMPAIGN_GRID} but"
+    where = f"{folder / CONFIG_FILE}: made by {grid_file} but"
     if not isinstance(s, dict):
         raise ConfigError(f"{where} has no 'settings' object")
     try:
@@ -92,6 +93,13 @@ def campaign_run(folder: Path, config: dict) -> CampaignRun:
     except (KeyError, TypeError, ValueError) as exc:
         raise ConfigError(f"{where} its settings lack scene, views or seed ({exc})") from None
     other = {k: s.get(k) for k, v in CAMPAIGN_SETTINGS.items() if s.get(k) != v}
+    return cell, other, where
+
+
+def campaign_run(folder: Path, config: dict) -> CampaignRun:
+    """The CampaignRun of a campaign record; ConfigError naming the record when its settings
+    are not a cell of the grid."""
+    cell, other, where = record_cell(folder, config, CAMPAIGN_GRID)
     if (cell[:2] not in CAMPAIGN_SCENES or cell[2] not in CAMPAIGN_METHODS
             or cell[3] not in CAMPAIGN_SEEDS or other):
         raise ConfigError(f"{where} scene {cell[0]}, views {cell[1]}, method {cell[2]}, seed "
@@ -100,25 +108,32 @@ def campaign_run(folder: Path, config: dict) -> CampaignRun:
     return CampaignRun(folder.name, *cell, read_run_json(folder / METRICS_FILE))
 
 
-def load_campaign(records_dir: str | Path) -> list[CampaignRun]:
-    """The campaign's records among the folders of ``records_dir`` (others are skipped);
-    ConfigError naming both records when two share a cell."""
+def load_grid_records(records_dir: str | Path, grid_file: str = CAMPAIGN_GRID,
+                      make_run=campaign_run) -> list[CampaignRun]:
+    """The records among the folders of ``records_dir`` made by ``grid_file`` (others are
+    skipped), each read by ``make_run(folder, config)``; ConfigError naming both records when two
+    share a cell."""
     if not Path(records_dir).is_dir():
         raise ConfigError(f"{records_dir}: not a folder (expected results/records)")
     out, seen = [], {}
     for folder in sorted(p for p in Path(records_dir).iterdir() if p.is_dir()):
         if not (folder / CONFIG_FILE).is_file():
             continue
-        config = read_run_json(folder / "config.json")
-        if not made_by_campaign(config):
+        config = read_run_json(folder / CONFIG_FILE)
+        if not made_by_campaign(config, grid_file):
             continue
-        r = campaign_run(folder, config)
+        r = make_run(folder, config)
         key = (r.scene, r.views, r.method, r.seed)
         if key in seen:
             raise ConfigError(f"{folder}: same scene, views, method and seed as {seen[key]}")
         seen[key] = folder.name
         out.append(r)
     return out
+
+
+def load_campaign(records_dir: str | Path) -> list[CampaignRun]:
+    """The campaign's records among the folders of ``records_dir`` (load_grid_records)."""
+    return load_grid_records(records_dir)
 
 
 # --- formatting -----------------------------------------------------------------------------
@@ -266,5 +281,5 @@ def campaign_markdown(records_dir: str | Path) -> str:
 
 __all__ = ["CAMPAIGN_GRID", "CAMPAIGN_SOURCE_HASHES", "CAMPAIGN_SCENES", "CAMPAIGN_METHODS", "CAMPAIGN_SEEDS",
            "CAMPAIGN_SETTINGS", "COMPARISONS", "MISSING", "NO_PAIRS", "CampaignRun",
-           "made_by_campaign", "campaign_run", "load_campaign", "campaign_markdown", "diffs_head",
+           "made_by_campaign", "record_cell", "campaign_run", "load_grid_records", "load_campaign", "campaign_markdown", "diffs_head",
            "diff_row", "pairs_of", "mean_std", "metric", "prose"]

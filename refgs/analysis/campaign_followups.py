@@ -22,12 +22,13 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..errors import ConfigError
-from ..runs import CONFIG_FILE, METRICS_FILE
+from ..runs import METRICS_FILE
 from .campaign import (CAMPAIGN_SEEDS, CAMPAIGN_SETTINGS, CAMPAIGN_SOURCE_HASHES, COMPARISONS,
                        DISPLAY, METRICS, MISSING, CampaignRun, diff_row, diffs_head,
-                       load_campaign, made_by_campaign, mean_std, metric, pairs_of, prose)
+                       load_campaign, load_grid_records, mean_std, metric, pairs_of, prose,
+                       record_cell)
 from .campaign_paper import PAPER
-from .tables import method_label, read_run_json
+from .tables import read_run_json
 
 #: The follow-ups' grid, as the tail of the path in a record's command.
 FOLLOWUPS_GRID = "experiments/paper_followups.toml"
@@ -60,15 +61,7 @@ TITLE = "Follow-ups on fern: two ablations of FM, 6 and 9 views"
 def followup_run(folder: Path, config: dict) -> CampaignRun:
     """The CampaignRun of a follow-up record; ConfigError naming the record when its settings are
     not a cell of the grid or another training code made it."""
-    where = f"{folder / CONFIG_FILE}: made by {FOLLOWUPS_GRID} but"
-    s = config.get("settings")
-    if not isinstance(s, dict):
-        raise ConfigError(f"{where} has no 'settings' object")
-    try:
-        cell = (Path(s["scene"]).name, int(s["views"]), method_label(s), int(s["seed"]))
-    except (KeyError, TypeError, ValueError) as exc:
-        raise ConfigError(f"{where} its settings lack scene, views or seed ({exc})") from None
-    other = {k: s.get(k) for k, v in CAMPAIGN_SETTINGS.items() if s.get(k) != v}
+    cell, other, where = record_cell(folder, config, FOLLOWUPS_GRID)
     if cell[0] != SCENE or cell[1:3] not in FOLLOWUP_CELLS or cell[3] not in CAMPAIGN_SEEDS or other:
         raise ConfigError(f"{where} scene {cell[0]}, views {cell[1]}, method {cell[2]}, seed "
                           f"{cell[3]}{', ' + str(other) if other else ''} is not one of its cells "
@@ -83,22 +76,7 @@ def followup_run(folder: Path, config: dict) -> CampaignRun:
 def load_followups(records_dir: str | Path) -> list[CampaignRun]:
     """The follow-ups' records among the folders of ``records_dir`` (others are skipped);
     ConfigError naming both records when two share a cell."""
-    if not Path(records_dir).is_dir():
-        raise ConfigError(f"{records_dir}: not a folder (expected results/records)")
-    out, seen = [], {}
-    for folder in sorted(p for p in Path(records_dir).iterdir() if p.is_dir()):
-        if not (folder / CONFIG_FILE).is_file():
-            continue
-        config = read_run_json(folder / CONFIG_FILE)
-        if not made_by_campaign(config, FOLLOWUPS_GRID):
-            continue
-        r = followup_run(folder, config)
-        key = (r.views, r.method, r.seed)
-        if key in seen:
-            raise ConfigError(f"{folder}: same views, method and seed as {seen[key]}")
-        seen[key] = folder.name
-        out.append(r)
-    return out
+    return load_grid_records(records_dir, FOLLOWUPS_GRID, followup_run)
 
 
 def paper_cell(values: tuple) -> str:
