@@ -18,7 +18,7 @@ NAME is a key of :data:`BACKENDS` or ``module:object`` (any importable object wi
 above; the current folder is searched first): an outside renderer plugs in everywhere as
 ``mypackage.mymodule:my_backend``.  An entry's capabilities are data (:class:`Entry`): the dtype
 and profile it renders (None: the caller's), its optional training helpers (``ssim_and_grad``,
-``adam_update``, TRN-08), its near-tie bands (bench) and the optional extra it needs.  Entries
+``l1_ssim_loss``, ``adam_update``, TRN-08), its near-tie bands (bench) and the optional extra it needs.  Entries
 whose code needs numba or torch are named by ``module:object`` strings and imported only when
 chosen, so ``import refgs`` stays numpy-only; the torch and gsplat entries live in the
 conformance suite's adapters and refgs imports them only on use.
@@ -42,9 +42,10 @@ DEFAULT_PROFILE = "inria"
 DEFAULT_DTYPE = "float64"
 DTYPES = ("float32", "float64")
 #: Optional helpers a backend may offer the trainer (TRN-08): the loss's SSIM with its gradient
-#: (the signature of refgs.metrics.ssim.ssim_and_grad) and Adam's update of one parameter (the
-#: signature of refgs.fast.adam.adam_update; False when it does not apply).
-HELPERS = ("ssim_and_grad", "adam_update")
+#: (the signature of refgs.metrics.ssim.ssim_and_grad), the whole loss w_l1 L1 + w_ssim (1 - SSIM)
+#: with its gradient (the signature of refgs.fast.ssim.l1_ssim_loss) and Adam's update of one
+#: parameter (the signature of refgs.fast.adam.adam_update; False when it does not apply).
+HELPERS = ("ssim_and_grad", "l1_ssim_loss", "adam_update")
 
 
 class BackendUnavailable(ConfigError):
@@ -82,6 +83,7 @@ class Entry:
 
 
 _FAST_HELPERS = (("ssim_and_grad", "refgs.fast.ssim:ssim_and_grad"),
+                 ("l1_ssim_loss", "refgs.fast.ssim:l1_ssim_loss"),
                  ("adam_update", "refgs.fast.adam:adam_update"))
 _REF = "refgs.backends:ReferenceBackend"
 _FAST = "refgs.fast.backend:FastBackend"

@@ -35,7 +35,7 @@ def test_reference_names_render_the_spec_bit_for_bit():
     for name in ("reference", "ref64"):
         be = get_backend(name, "inria", "float64")
         assert (be.profile, be.dtype, be.has_backward) == ("inria", "float64", True)
-        assert not hasattr(be, "adam_update") and not hasattr(be, "ssim_and_grad")
+        assert not any(hasattr(be, h) for h in ("adam_update", "ssim_and_grad", "l1_ssim_loss"))
         out = be.render(g, cam, refgs.RenderConfig())
         assert np.array_equal(out.image, want.image)
     be32 = get_backend("ref32")
@@ -72,12 +72,13 @@ def test_unsupported_combinations_are_one_line_errors():
 @needs_numba
 def test_fast_names_carry_the_training_helpers():
     from refgs.fast.adam import adam_update
-    from refgs.fast.ssim import ssim_and_grad
+    from refgs.fast.ssim import l1_ssim_loss, ssim_and_grad
 
     for name, dtype in (("fast", "float64"), ("fast64", "float64"), ("fast32", "float32")):
         be = get_backend(name)
         assert be.dtype == dtype and be.profile == "inria" and be.label == f"refgs.fast {dtype}"
         assert be.adam_update is adam_update and be.ssim_and_grad is ssim_and_grad
+        assert be.l1_ssim_loss is l1_ssim_loss
     g = get_backend("fast32g")
     assert (g.renderer.geometry, g.bands) == ("float64", "float32-compositing")
     assert get_backend("fast", "gsplat", "float32").renderer.profile == "gsplat"

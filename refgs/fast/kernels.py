@@ -116,7 +116,8 @@ def _forward_tiles(lo, hi, gauss, offsets, pos, means2d, conics, opac, colors, d
                     dy = (my - ys[r]) + ly
                     Cdy2 = C * dy * dy
                     b = r * T
-                    stops = 0
+                    stops = False                # a flag, not an int64 count: the widest type
+                    #                              in the loop sets the lanes per vector
                     # the row's lanes at once (one or both halves), masked (vectorised); a lane
                     # does what the per-pixel loop of the spec does: skip when done, power > 0
                     # (RAS-03) or alpha < 1/255 (RAS-04); stop without blending (RAS-05); else
@@ -130,7 +131,7 @@ def _forward_tiles(lo, hi, gauss, offsets, pos, means2d, conics, opac, colors, d
                                 & (not (a < amin)))
                         stop = live & ((test_T <= t_min) if stop_inclusive else (test_T < t_min))
                         blend = live & (not stop)
-                        stops += stop
+                        stops |= stop
                         w = a * Tc
                         st[_S_DONE + b + c] = one if stop else st[_S_DONE + b + c]
                         st[_S_R + b + c] = st[_S_R + b + c] + cr * w if blend else st[_S_R + b + c]
@@ -139,7 +140,7 @@ def _forward_tiles(lo, hi, gauss, offsets, pos, means2d, conics, opac, colors, d
                         st[_S_Z + b + c] = st[_S_Z + b + c] + z * w if blend else st[_S_Z + b + c]
                         st[_S_T + b + c] = test_T if blend else Tc
                         last[b + c] = slot if blend else last[b + c]
-                    if stops > 0:
+                    if stops:
                         done = True
                         for c in range(T):
                             done &= st[_S_DONE + b + c] != zero

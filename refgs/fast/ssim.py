@@ -1,4 +1,5 @@
-"""The 3DGS SSIM and its gradient (MET-02, MET-04) as two compiled, threaded passes over rows.
+"""The 3DGS SSIM and its gradient (MET-02, MET-04), and the training loss L1 + D-SSIM with its
+gradient (MET-08), as compiled, threaded passes over rows.
 
 The same formulas as ``refgs.metrics.ssim.ssim_and_grad`` (the readable spec, whose docstring and
 docs/derivations/ssim_loss.md give the chain); what is compiled is the separable Gaussian
@@ -11,6 +12,11 @@ intermediate row stays in cache:
             reversed kernel (the adjoint's first axis)  ->  smap (C, H, W), adjw (3C, H, W)
     pass 2, per row: adjw filtered along H (reversed kernel), combined into d SSIM / d x
 
+Before them, pass 0 turns the (H, W, C) images into float64 channel planes and checks them
+finite (one threaded pass, no intermediate copies).  :func:`l1_ssim_loss` (TRN-08) replaces pass
+2's output by the whole loss gradient, the L1 subgradient added in the same row loop, so the
+loss takes no numpy pass over the image at all.
+
 Each pass is split by rows over ``numba.get_num_threads()`` threads
 (``refgs.fast.render.parallel_for``); every output element is a sum over the same 11 taps in a
 fixed order (a = 0..10, zero border), whatever the thread count, so the result is deterministic;
@@ -20,6 +26,8 @@ along W the row is zero-padded (a tap on the padding adds 0): the sums of the se
 row / column kernels this replaces, operation for operation.  float64 throughout, as the reference.
 """
 from __future__ import annotations
+
+import math
 
 import numpy as np
 from numba import njit
@@ -164,6 +172,31 @@ def _pass_moments(lo, hi, x, y, g, g_rev, inv_n, c1, c2, smap, adjw):
             _along_w(ab[k], w, g_rev, adjw[k * c + p, i])
 
 
+@njit(nogil=True, cache=True, inline="always")
+def _adjoint_h(adjw, p, i, c, h, w, g_rev, t):
+    """t (3, W) = the adjoint's H-pass (reversed kernel) of the three planes adjw[k C + p] at
+    row i: the taps inside the image, in tap order."""
+    r = SSIM_PAD
+    for k in range(3):
+        q = k * c + p
+        if r <= i < h - r:
+            sp = adjw[q]
+            for j in range(w):
+                t[k, j] = _taps11(g_rev, sp[i - 5, j], sp[i - 4, j], sp[i - 3, j],
+                                  sp[i - 2, j], sp[i - 1, j], sp[i, j], sp[i + 1, j],
+                                  sp[i + 2, j], sp[i + 3, j], sp[i + 4, j], sp[i + 5, j])
+        else:
+            for j in range(w):
+                t[k, j] = 0.0
+            for a in range(g_rev.shape[0]):
+                ii = i + a - r
+                if 0 <= ii < h:
+                    ga = g_rev[a]
+                    s = adjw[q, ii]
+                    for j in range(w):
+                        t[k, j] += ga * s[j]
+
+
 @njit(nogil=True, cache=True)
 def _pass_adjoint(lo, hi, adjw, x, y, g_rev, grad):
     """Pass 2 for channel-rows lo..hi: the adjoint's H-pass of adjw and the combination
@@ -171,37 +204,65 @@ def _pass_adjoint(lo, hi, adjw, x, y, g_rev, grad):
     c = x.shape[0]
     h = x.shape[1]
     w = x.shape[2]
-    r = SSIM_PAD
     t = np.empty((3, w))
     for item in range(lo, hi):
         p = item // h
         i = item - p * h
-        for k in range(3):
-            q = k * c + p
-            if r <= i < h - r:
-                sp = adjw[q]
-                for j in range(w):
-                    t[k, j] = _taps11(g_rev, sp[i - 5, j], sp[i - 4, j], sp[i - 3, j],
-                                      sp[i - 2, j], sp[i - 1, j], sp[i, j], sp[i + 1, j],
-                                      sp[i + 2, j], sp[i + 3, j], sp[i + 4, j], sp[i + 5, j])
-            else:
-                for j in range(w):
-                    t[k, j] = 0.0
-                for a in range(g_rev.shape[0]):
-                    ii = i + a - r
-                    if 0 <= ii < h:
-                        ga = g_rev[a]
-                        s = adjw[q, ii]
-                        for j in range(w):
-                            t[k, j] += ga * s[j]
+        _adjoint_h(adjw, p, i, c, h, w, g_rev, t)
         for j in range(w):
             grad[i, j, p] = t[0, j] + 2.0 * x[p, i, j] * t[1, j] + y[p, i, j] * t[2, j]
+
+
+@njit(nogil=True, cache=True)
+def _pass_planes(lo, hi, img, gt, x, y, bad):
+    """For channel-rows lo..hi of (H, W, C) img, gt (float32 or float64): x[p, i] = img[i, :, p]
+    and y[p, i] = gt[i, :, p] in float64 (exact: what ``astype(float64)`` gives); bad[item] =
+    how many of the row's 2 W values are not finite."""
+    h = x.shape[1]
+    w = x.shape[2]
+    for item in range(lo, hi):
+        p = item // h
+        i = item - p * h
+        nb = 0
+        for j in range(w):
+            a = np.float64(img[i, j, p])
+            b = np.float64(gt[i, j, p])
+            x[p, i, j] = a
+            y[p, i, j] = b
+            nb += (not math.isfinite(a)) + (not math.isfinite(b))
+        bad[item] = nb
+
+
+@njit(nogil=True, cache=True)
+def _pass_loss_grad(lo, hi, adjw, x, y, g_rev, w_l1, w_ssim, n, grad, l1_rows):
+    """Pass 2 of :func:`l1_ssim_loss` for channel-rows lo..hi: d SSIM / d x as in
+    :func:`_pass_adjoint` (same expressions), the L1 subgradient sign(x - y) / n, and
+    grad[i, j, p] = w_l1 sign / n - w_ssim d SSIM / d x, rounded once to grad's dtype: the
+    operations of ``refgs.train.loss.photometric_loss`` element for element.  l1_rows[item] =
+    the row's sum of |x - y| (in column order)."""
+    c = x.shape[0]
+    h = x.shape[1]
+    w = x.shape[2]
+    t = np.empty((3, w))
+    for item in range(lo, hi):
+        p = item // h
+        i = item - p * h
+        _adjoint_h(adjw, p, i, c, h, w, g_rev, t)
+        acc = 0.0
+        for j in range(w):
+            g_s = t[0, j] + 2.0 * x[p, i, j] * t[1, j] + y[p, i, j] * t[2, j]
+            d = x[p, i, j] - y[p, i, j]
+            sgn = 1.0 if d > 0.0 else (-1.0 if d < 0.0 else 0.0)
+            grad[i, j, p] = w_l1 * (sgn / n) - w_ssim * g_s     # rounded to grad's dtype
+            acc += abs(d)
+        l1_rows[item] = acc
 
 
 def _image_pair(img, gt) -> tuple[np.ndarray, np.ndarray, tuple]:
     """float64 channel planes (C, H, W) of img and gt and img's shape; ValueError naming
     ssim_and_grad for mismatched shapes, other ranks or non-finite values (the reference's
-    checks and messages)."""
+    checks and messages).  float32 / float64 images are converted by the threaded
+    :func:`_pass_planes` (no intermediate copies), others through numpy."""
     a, b = np.asarray(img), np.asarray(gt)
     if a.shape != b.shape:
         raise ValueError(f"ssim_and_grad: img and gt must have the same shape, got {a.shape} "
@@ -209,14 +270,37 @@ def _image_pair(img, gt) -> tuple[np.ndarray, np.ndarray, tuple]:
     if a.ndim not in (2, 3) or a.size == 0:
         raise ValueError(f"ssim_and_grad: expected images of shape (H, W) or (H, W, C), "
                          f"got {a.shape}")
-    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
-    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
-        raise ValueError("ssim_and_grad: img and gt must contain only finite values")
     shape = a.shape
     if a.ndim == 2:
         a, b = a[..., None], b[..., None]
-    return (np.ascontiguousarray(np.moveaxis(a, 2, 0)), np.ascontiguousarray(np.moveaxis(b, 2, 0)),
-            shape)
+    if a.dtype not in _PLANE_DTYPES or b.dtype not in _PLANE_DTYPES:
+        a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    h, w, c = a.shape
+    x, y = np.empty((c, h, w)), np.empty((c, h, w))
+    bad = np.empty(c * h, np.int64)
+    parallel_for(_pass_planes, c * h, a, b, x, y, bad)
+    if bad.any():
+        raise ValueError("ssim_and_grad: img and gt must contain only finite values")
+    return x, y, shape
+
+
+#: input dtypes :func:`_pass_planes` is compiled for (others are converted by numpy first)
+_PLANE_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))
+
+
+def _moments(x, y) -> tuple[np.ndarray, np.ndarray]:
+    """Pass 1 over the planes: the SSIM map (C, H, W) and the adjoint inputs (3C, H, W)."""
+    c, h, w = x.shape
+    smap = np.empty((c, h, w))
+    adjw = np.empty((3 * c, h, w))
+    parallel_for(_pass_moments, c * h, x, y, _G, _G_REV, 1.0 / (c * h * w), SSIM_C1, SSIM_C2,
+                 smap, adjw)
+    return smap, adjw
+
+
+def _out_dtype(img) -> np.dtype:
+    dt = np.asarray(img).dtype
+    return dt if np.issubdtype(dt, np.floating) else np.dtype(np.float64)
 
 
 def ssim_and_grad(img: np.ndarray, gt: np.ndarray) -> tuple[float, np.ndarray]:
@@ -226,15 +310,35 @@ def ssim_and_grad(img: np.ndarray, gt: np.ndarray) -> tuple[float, np.ndarray]:
     """
     x, y, shape = _image_pair(img, gt)
     c, h, w = x.shape
-    smap = np.empty((c, h, w))
-    adjw = np.empty((3 * c, h, w))
-    parallel_for(_pass_moments, c * h, x, y, _G, _G_REV, 1.0 / (c * h * w), SSIM_C1, SSIM_C2,
-                 smap, adjw)
+    smap, adjw = _moments(x, y)
     grad = np.empty((h, w, c))
     parallel_for(_pass_adjoint, c * h, adjw, x, y, _G_REV, grad)
-    dt = np.asarray(img).dtype
-    out_dtype = dt if np.issubdtype(dt, np.floating) else np.float64
-    return float(np.mean(smap)), grad.reshape(shape).astype(out_dtype, copy=False)
+    return float(np.mean(smap)), grad.reshape(shape).astype(_out_dtype(img), copy=False)
 
 
-__all__ = ["ssim_and_grad"]
+def l1_ssim_loss(render: np.ndarray, gt: np.ndarray, w_l1: float, w_ssim: float
+                 ) -> tuple[float, np.ndarray]:
+    """The training loss w_l1 L1 + w_ssim (1 - SSIM) and its gradient in one compiled chain
+    (MET-08; TRN-08: what ``refgs.train.loss.photometric_loss`` computes from its form and
+    lambda, with this backend's SSIM).
+
+    render, gt: (H, W, C) or (H, W), same shape, finite.  Returns ``(loss, grad)``: grad with
+    render's shape and floating dtype (float64 for integer input), element for element the
+    reference's ``w_l1 sign(d) / N - w_ssim dSSIM/d render`` rounded once to that dtype
+    (bit-identical); the loss a Python float whose L1 mean is summed by rows (it may differ
+    from the reference's pairwise ``np.mean`` in the last bits; the SSIM mean is the same).
+    """
+    x, y, shape = _image_pair(render, gt)
+    c, h, w = x.shape
+    smap, adjw = _moments(x, y)
+    grad = np.empty((h, w, c), _out_dtype(render))
+    l1_rows = np.empty(c * h)
+    n = c * h * w
+    parallel_for(_pass_loss_grad, c * h, adjw, x, y, _G_REV, float(w_l1), float(w_ssim), float(n),
+                 grad, l1_rows)
+    s = float(np.mean(smap))
+    l1 = float(l1_rows.sum()) / n
+    return float(w_l1) * l1 + float(w_ssim) * (1.0 - s), grad.reshape(shape)
+
+
+__all__ = ["ssim_and_grad", "l1_ssim_loss"]

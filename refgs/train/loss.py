@@ -38,7 +38,8 @@ def l1_and_grad(render: np.ndarray, gt: np.ndarray) -> tuple[float, np.ndarray]:
 
 
 def photometric_loss(render: np.ndarray, gt: np.ndarray, lambda_dssim: float = LAMBDA_DSSIM,
-                     form: str = FORM_L1_PLUS, ssim_fn=None) -> tuple[float, np.ndarray]:
+                     form: str = FORM_L1_PLUS, ssim_fn=None, loss_fn=None
+                     ) -> tuple[float, np.ndarray]:
     """Training loss and d loss / d render (MET-08).
 
     render, gt: (H, W, C) or (H, W), same shape, finite (the render is already clamped to [0, 1]
@@ -47,7 +48,10 @@ def photometric_loss(render: np.ndarray, gt: np.ndarray, lambda_dssim: float = L
     Returns ``(loss, grad)``: loss a Python float computed in float64; grad with render's shape
     and render's floating dtype (float64 for integer input).  ``ssim_fn``: an implementation of
     ``refgs.metrics.ssim.ssim_and_grad`` (the default) with its signature, e.g. a backend's
-    compiled one (``refgs.fast.ssim.ssim_and_grad``, TRN-08).
+    compiled one (``refgs.fast.ssim.ssim_and_grad``, TRN-08).  ``loss_fn``: a backend's whole
+    chain instead, ``loss_fn(render, gt, w_l1, w_ssim) -> (w_l1 L1 + w_ssim (1 - SSIM), grad)``
+    with the gradient computed as below (``refgs.fast.ssim.l1_ssim_loss``); it is called with
+    the form's weights and the shape check of this function.
     """
     if form not in LOSS_FORMS:
         raise ValueError(f"photometric_loss: form must be one of {LOSS_FORMS}, got {form!r}")
@@ -57,10 +61,12 @@ def photometric_loss(render: np.ndarray, gt: np.ndarray, lambda_dssim: float = L
     if np.shape(render) != np.shape(gt):
         raise ValueError(f"photometric_loss: render and gt must have the same shape, got "
                          f"{np.shape(render)} and {np.shape(gt)}")
+    w_l1 = 1.0 if form == FORM_L1_PLUS else 1.0 - lam
+    if loss_fn is not None:
+        return loss_fn(render, gt, w_l1, lam)
     # ssim_and_grad validates the rest (2 or 3 dimensions, finite values).
     s, g_s = (ssim_fn or ssim_and_grad)(np.asarray(render, dtype=np.float64), gt)
     l1, g_l1 = l1_and_grad(render, gt)
-    w_l1 = 1.0 if form == FORM_L1_PLUS else 1.0 - lam
     loss = w_l1 * l1 + lam * (1.0 - s)
     grad = w_l1 * g_l1 - lam * g_s
     dtype = np.asarray(render).dtype

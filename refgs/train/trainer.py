@@ -158,7 +158,8 @@ class Trainer:
     train_views, test_views   lists of View
     params       name -> array (refgs.Gaussians fields), copied in ``cfg.dtype``
     extent       scene extent e (refgs.train.schedule.scene_extent)
-    backend      the renderer (refgs.train.backend); optional ``adam_update`` / ``ssim_and_grad``
+    backend      the renderer (refgs.train.backend); optional ``adam_update`` / ``ssim_and_grad`` /
+                 ``l1_ssim_loss``
     method       the training method's hooks (refgs.train.hooks.Method; the caller builds it,
                  e.g. ``refgs.methods.make_method(cfg.method, cfg.method_params)``); None only
                  for plain 3DGS (``cfg.method == "3dgs"``)
@@ -290,7 +291,8 @@ class Trainer:
         shown = np.clip(image, 0.0, 1.0)
         loss, v_image = photometric_loss(shown if cfg.clamp_render else image, view.image,
                                          cfg.lambda_dssim, cfg.loss_form,
-                                         getattr(self.backend, "ssim_and_grad", None))
+                                         getattr(self.backend, "ssim_and_grad", None),
+                                         getattr(self.backend, "l1_ssim_loss", None))
         if not np.isfinite(loss):
             raise TrainingDiverged(f"training diverged at iteration {t}: loss is {loss}")
         if cfg.clamp_render:  # torch.clamp passes the gradient where min <= x <= max
