@@ -269,11 +269,12 @@ def _backward_tiles(lo, hi, gauss, offsets, means2d, conics, opac, colors, depth
                     dy = (my - ys[r]) + ly
                     Cdy2 = C * dy * dy
                     b = r * T
-                    # all 16 lanes at once, masked (vectorised; here a half-row loop costs more
-                    # than the lanes it saves); a lane is one pixel's step of the back-to-front
-                    # walk: only fragments the forward blended (s < last, power <= 0,
-                    # alpha >= 1/255) change T and the suffix sum or contribute
-                    for c in range(T):
+                    # the half rows the forward's screen kept, lanes at once, masked
+                    # (vectorised); a lane is one pixel's step of the back-to-front walk: only
+                    # fragments the forward blended (s < last, power <= 0, alpha >= 1/255)
+                    # change T and the suffix sum or contribute (a lane of a half the screen
+                    # dropped fails the alpha test, so it would add exact zeros)
+                    for c in range(0 if halves & 1 else _HALF, T if halves & 2 else _HALF):
                         dx = (mx - xs[c]) + lx
                         power = gaussian_power(A, B, Cdy2, dx, dy, neg_half)
                         G = fast_exp(power)
