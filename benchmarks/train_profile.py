@@ -20,8 +20,8 @@ Phases are timed by wrapping the functions that do them, exclusively (a phase's 
 the phases nested in it), so they add up to the iteration: projection (the per-Gaussian forward),
 depth sort, tile lists (live test, counting sort), composite fwd, composite bwd, per-Gaussian bwd
 (the per-Gaussian reduction and the backward of SH, projection and covariance), render / backward
-glue (validation, allocation: what stays in Python), SSIM (the loss's SSIM and gradient), loss
-glue (L1, clamp), Adam, densify (statistics every iteration; densify-and-prune and the opacity
+glue (validation, allocation: what stays in Python), SSIM (the loss's SSIM and gradient; with a
+backend's ``l1_ssim_loss`` the whole loss, L1 included), loss glue (L1, clamp), Adam, densify (statistics every iteration; densify-and-prune and the opacity
 reset when they fall in the window), method hooks (e.g. FM's perturbation) and the trainer's own
 glue.
 
@@ -152,8 +152,9 @@ def _instrument(trainer, phases: Phases) -> None:
     b = trainer.backend
     b.render = phases.wrap(b.render, "render glue")
     b.render_backward = phases.wrap(b.render_backward, "backward glue")
-    if getattr(b, "ssim_and_grad", None) is not None:
-        b.ssim_and_grad = phases.wrap(b.ssim_and_grad, "SSIM")
+    for helper in ("ssim_and_grad", "l1_ssim_loss"):     # the loss's compiled chain (TRN-08)
+        if getattr(b, helper, None) is not None:
+            setattr(b, helper, phases.wrap(getattr(b, helper), "SSIM"))
     for mod in (tr,):
         if hasattr(mod, "photometric_loss"):
             mod.photometric_loss = phases.wrap(mod.photometric_loss, "loss glue")

@@ -42,7 +42,7 @@ _G_REV = np.ascontiguousarray(_G[::-1])
 assert SSIM_WINDOW == 11 and SSIM_PAD == 5
 
 
-@njit(nogil=True, cache=True, inline="always")
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
 def _taps11(g, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9, s10):
     """sum_a g[a] s_a accumulated from 0.0 in the order a = 0..10 (the separate kernels' order)."""
     acc = 0.0
@@ -60,12 +60,12 @@ def _taps11(g, s0, s1, s2, s3, s4, s5, s6, s7, s8, s9, s10):
     return acc
 
 
-@njit(nogil=True, cache=True, inline="always")
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
 def _sq(v):
     return v * v
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, error_model="numpy")
 def _along_w(buf, w, g, out):
     """out[j] = sum_a g[a] buf[j + a], a = 0..10, for j < w: a row's W-pass on its zero-padded
     copy ``buf`` (w + 10,)."""
@@ -74,7 +74,7 @@ def _along_w(buf, w, g, out):
                          buf[j + 6], buf[j + 7], buf[j + 8], buf[j + 9], buf[j + 10])
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, error_model="numpy")
 def _moments_h(x, y, p, i, g, hb):
     """The H-pass of the five moments at row i of channel p into hb[k, 5 : 5 + W] (k: x, y, x²,
     y², xy): sum over the input rows i - 5 .. i + 5 inside the image, in tap order."""
@@ -131,7 +131,34 @@ def _moments_h(x, y, p, i, g, hb):
                 hb[4, r + j] += ga * (xv * yv)
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, error_model="numpy")
+def _ssim_row(m_x, m_y, m_xx, m_yy, m_xy, w, inv_n, c1, c2, srow, g_mu, g_xx, g_xy):
+    """The pointwise chain of one row from its filtered moments (the reference's expressions in
+    its order): srow the SSIM map; g_mu, g_xx, g_xy the adjoint inputs (grad of mu_x, of m_xx, of
+    m_xy).  Every array a separate 1D argument, so that LLVM vectorises the loop, divisions
+    included."""
+    for j in range(w):
+        mu_x = m_x[j]
+        mu_y = m_y[j]
+        s_xx = m_xx[j] - mu_x * mu_x
+        s_yy = m_yy[j] - mu_y * mu_y
+        s_xy = m_xy[j] - mu_x * mu_y
+        a1 = 2.0 * mu_x * mu_y + c1
+        a2 = 2.0 * s_xy + c2
+        b1 = mu_x * mu_x + mu_y * mu_y + c1
+        b2 = s_xx + s_yy + c2
+        sv = (a1 * a2) / (b1 * b2)
+        d_a1 = a2 / (b1 * b2)
+        d_a2 = a1 / (b1 * b2)
+        d_b1 = -sv / b1
+        d_b2 = -sv / b2
+        srow[j] = sv
+        g_mu[j] = inv_n * 2.0 * (mu_y * (d_a1 - d_a2) + mu_x * (d_b1 - d_b2))
+        g_xx[j] = inv_n * d_b2
+        g_xy[j] = inv_n * 2.0 * d_a2
+
+
+@njit(nogil=True, cache=True, error_model="numpy")
 def _pass_moments(lo, hi, x, y, g, g_rev, inv_n, c1, c2, smap, adjw):
     """Pass 1 for channel-rows lo..hi of (C, H, W) x, y: smap (C, H, W) the SSIM map; adjw
     (3C, H, W) the chain's three adjoint inputs (grad of mu_x, of m_xx, of m_xy; the reference's
@@ -149,30 +176,13 @@ def _pass_moments(lo, hi, x, y, g, g_rev, inv_n, c1, c2, smap, adjw):
         _moments_h(x, y, p, i, g, hb)
         for k in range(5):
             _along_w(hb[k], w, g, mom[k])
-        for j in range(w):
-            mu_x = mom[0, j]
-            mu_y = mom[1, j]
-            s_xx = mom[2, j] - mu_x * mu_x
-            s_yy = mom[3, j] - mu_y * mu_y
-            s_xy = mom[4, j] - mu_x * mu_y
-            a1 = 2.0 * mu_x * mu_y + c1
-            a2 = 2.0 * s_xy + c2
-            b1 = mu_x * mu_x + mu_y * mu_y + c1
-            b2 = s_xx + s_yy + c2
-            sv = (a1 * a2) / (b1 * b2)
-            d_a1 = a2 / (b1 * b2)
-            d_a2 = a1 / (b1 * b2)
-            d_b1 = -sv / b1
-            d_b2 = -sv / b2
-            smap[p, i, j] = sv
-            ab[0, r + j] = inv_n * 2.0 * (mu_y * (d_a1 - d_a2) + mu_x * (d_b1 - d_b2))
-            ab[1, r + j] = inv_n * d_b2
-            ab[2, r + j] = inv_n * 2.0 * d_a2
+        _ssim_row(mom[0], mom[1], mom[2], mom[3], mom[4], w, inv_n, c1, c2, smap[p, i],
+                  ab[0, r:], ab[1, r:], ab[2, r:])
         for k in range(3):
             _along_w(ab[k], w, g_rev, adjw[k * c + p, i])
 
 
-@njit(nogil=True, cache=True, inline="always")
+@njit(nogil=True, cache=True, inline="always", error_model="numpy")
 def _adjoint_h(adjw, p, i, c, h, w, g_rev, t):
     """t (3, W) = the adjoint's H-pass (reversed kernel) of the three planes adjw[k C + p] at
     row i: the taps inside the image, in tap order."""
@@ -197,7 +207,7 @@ def _adjoint_h(adjw, p, i, c, h, w, g_rev, t):
                         t[k, j] += ga * s[j]
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, error_model="numpy")
 def _pass_adjoint(lo, hi, adjw, x, y, g_rev, grad):
     """Pass 2 for channel-rows lo..hi: the adjoint's H-pass of adjw and the combination
     grad[i, j, p] = f^T(g_mu_x) + 2 x f^T(g_m_xx) + y f^T(g_m_xy) (channel-last output)."""
@@ -213,7 +223,7 @@ def _pass_adjoint(lo, hi, adjw, x, y, g_rev, grad):
             grad[i, j, p] = t[0, j] + 2.0 * x[p, i, j] * t[1, j] + y[p, i, j] * t[2, j]
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, error_model="numpy")
 def _pass_planes(lo, hi, img, gt, x, y, bad):
     """For channel-rows lo..hi of (H, W, C) img, gt (float32 or float64): x[p, i] = img[i, :, p]
     and y[p, i] = gt[i, :, p] in float64 (exact: what ``astype(float64)`` gives); bad[item] =
@@ -233,7 +243,7 @@ def _pass_planes(lo, hi, img, gt, x, y, bad):
         bad[item] = nb
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, error_model="numpy")
 def _pass_loss_grad(lo, hi, adjw, x, y, g_rev, w_l1, w_ssim, n, grad, l1_rows):
     """Pass 2 of :func:`l1_ssim_loss` for channel-rows lo..hi: d SSIM / d x as in
     :func:`_pass_adjoint` (same expressions), the L1 subgradient sign(x - y) / n, and
