@@ -268,17 +268,21 @@ def _pass_loss_grad(lo, hi, adjw, x, y, g_rev, w_l1, w_ssim, n, grad, l1_rows):
         l1_rows[item] = acc
 
 
-def _image_pair(img, gt) -> tuple[np.ndarray, np.ndarray, tuple]:
+#: input dtypes :func:`_pass_planes` is compiled for (others are converted by numpy first)
+_PLANE_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))
+
+
+def _image_pair(img, gt, name: str = "ssim_and_grad") -> tuple[np.ndarray, np.ndarray, tuple]:
     """float64 channel planes (C, H, W) of img and gt and img's shape; ValueError naming
-    ssim_and_grad for mismatched shapes, other ranks or non-finite values (the reference's
-    checks and messages).  float32 / float64 images are converted by the threaded
-    :func:`_pass_planes` (no intermediate copies), others through numpy."""
+    ``name`` for mismatched shapes, other ranks or non-finite values (the reference's checks and
+    messages).  float32 / float64 images are converted by the threaded :func:`_pass_planes` (no
+    intermediate copies), others through numpy."""
     a, b = np.asarray(img), np.asarray(gt)
     if a.shape != b.shape:
-        raise ValueError(f"ssim_and_grad: img and gt must have the same shape, got {a.shape} "
+        raise ValueError(f"{name}: img and gt must have the same shape, got {a.shape} "
                          f"and {b.shape}")
     if a.ndim not in (2, 3) or a.size == 0:
-        raise ValueError(f"ssim_and_grad: expected images of shape (H, W) or (H, W, C), "
+        raise ValueError(f"{name}: expected images of shape (H, W) or (H, W, C), "
                          f"got {a.shape}")
     shape = a.shape
     if a.ndim == 2:
@@ -290,12 +294,8 @@ def _image_pair(img, gt) -> tuple[np.ndarray, np.ndarray, tuple]:
     bad = np.empty(c * h, np.int64)
     parallel_for(_pass_planes, c * h, a, b, x, y, bad)
     if bad.any():
-        raise ValueError("ssim_and_grad: img and gt must contain only finite values")
+        raise ValueError(f"{name}: img and gt must contain only finite values")
     return x, y, shape
-
-
-#: input dtypes :func:`_pass_planes` is compiled for (others are converted by numpy first)
-_PLANE_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))
 
 
 def _moments(x, y) -> tuple[np.ndarray, np.ndarray]:
@@ -338,7 +338,7 @@ def l1_ssim_loss(render: np.ndarray, gt: np.ndarray, w_l1: float, w_ssim: float
     (bit-identical); the loss a Python float whose L1 mean is summed by rows (it may differ
     from the reference's pairwise ``np.mean`` in the last bits; the SSIM mean is the same).
     """
-    x, y, shape = _image_pair(render, gt)
+    x, y, shape = _image_pair(render, gt, "l1_ssim_loss")
     c, h, w = x.shape
     smap, adjw = _moments(x, y)
     grad = np.empty((h, w, c), _out_dtype(render))
