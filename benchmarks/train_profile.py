@@ -2,7 +2,7 @@
 
     python benchmarks/train_profile.py RUN [RUN ...] [--source NAME=PATH[:DTYPE[:GEOMETRY]] ...]
         [--steps 10] [--warmup 2] [--repeats 3] [--threads 2] [--from T] [--method NAME]
-        [--json OUT.json]
+        [--kernels] [--json OUT.json]
 
 For each run directory (its ``checkpoint.npz``: a finished or an interrupted run; the directory is
 only read), each ``--source`` (a refgs source tree put first on PYTHONPATH: e.g. ``new=.`` and
@@ -23,7 +23,9 @@ depth sort, tile lists (live test, counting sort), composite fwd, composite bwd,
 glue (validation, allocation: what stays in Python), SSIM (the loss's SSIM and gradient; with a
 backend's ``l1_ssim_loss`` the whole loss, L1 included), loss glue (L1, clamp), Adam, densify (statistics every iteration; densify-and-prune and the opacity
 reset when they fall in the window), method hooks (e.g. FM's perturbation) and the trainer's own
-glue.
+glue.  ``--kernels`` adds a second table: the wall time of each compiled kernel of refgs.fast
+(each call through parallel_for / parallel_bands, by kernel name), the finer view inside the
+phases (e.g. the screen test ``tile_alive`` and the counting sort inside "tile lists").
 
 Work and the machine's limit.  After the timed steps the first source's worker renders each
 training view once and counts the pixel-Gaussian *pairs*: fragments the compositing blends
@@ -75,7 +77,8 @@ KERNEL_PHASES = {
     "composite_forward_fma": "composite fwd", "composite_backward_fma": "composite bwd",
     "reduce_by_gaussian": "per-Gaussian bwd", "gaussians_backward": "per-Gaussian bwd",
     "_correlate_rows": "SSIM", "_correlate_cols": "SSIM", "_pointwise": "SSIM", "_combine": "SSIM",
-    "_pass_moments": "SSIM", "_pass_adjoint": "SSIM",
+    "_pass_moments": "SSIM", "_pass_adjoint": "SSIM", "_pass_planes": "SSIM",
+    "_pass_loss_grad": "SSIM",
     "_update": "Adam",
 }
 PHASES = ("projection", "depth sort", "tile lists", "composite fwd", "composite bwd",
@@ -137,14 +140,46 @@ def _load_trainer(run_dir: Path):
         return getattr(importlib.import_module("refgs.cli"), "_restore")(run_dir)[-1]
 
 
-def _instrument(trainer, phases: Phases) -> None:
+class KernelTimes:
+    """Wall time per compiled kernel (the per-kernel rows of ``--kernels``): ``wrap`` a runner
+    (refgs.fast.render.parallel_for / parallel_bands); a call nested in another wrapped call
+    (parallel_bands runs parallel_for) is counted once, by the outer one."""
+
+    def __init__(self, phases: Phases):
+        self.phases = phases
+        self.seconds: dict = {}
+        self._depth = 0
+
+    def wrap(self, run):
+        def timed(kernel, *args, **kwargs):
+            if not self.phases.on or self._depth:
+                return run(kernel, *args, **kwargs)
+            self._depth += 1
+            t0 = time.perf_counter()
+            try:
+                return run(kernel, *args, **kwargs)
+            finally:
+                self._depth -= 1
+                name = getattr(kernel, "__name__", str(kernel))
+                self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t0
+        return timed
+
+
+def _instrument(trainer, phases: Phases, kernels: KernelTimes) -> None:
     import importlib
     fr = importlib.import_module("refgs.fast.render")     # the module (refgs.fast.render is
     tr = importlib.import_module("refgs.train.trainer")   # also the name of a function)
 
-    kernel_runner = phases.wrap(fr.parallel_for, _kernel_phase)
+    kernel_runner = phases.wrap(kernels.wrap(fr.parallel_for), _kernel_phase)
     fr.parallel_for = kernel_runner
-    fr.parallel_bands = phases.wrap(fr.parallel_bands, _kernel_phase)
+    fr.parallel_bands = phases.wrap(kernels.wrap(fr.parallel_bands), _kernel_phase)
+    for name in ("refgs.fast.ssim", "refgs.fast.adam"):    # their own reference to parallel_for
+        try:
+            mod = importlib.import_module(name)
+        except ImportError:
+            continue
+        if getattr(mod, "parallel_for", None) is not None:
+            mod.parallel_for = phases.wrap(kernels.wrap(mod.parallel_for), _kernel_phase)
     fr.depth_order = phases.wrap(fr.depth_order, "depth sort")
     for name in ("live_intersections", "build_tile_lists"):
         if hasattr(fr, name):
@@ -217,7 +252,8 @@ def worker(args) -> dict:
         else trainer.cfg.iters - FINISHED_RUN_BACK)
     trainer.t = start
     phases = Phases()
-    _instrument(trainer, phases)
+    kernels = KernelTimes(phases)
+    _instrument(trainer, phases, kernels)
     for _ in range(args.warmup):
         trainer.step()
     n0 = trainer.n
@@ -228,6 +264,7 @@ def worker(args) -> dict:
     wall = time.perf_counter() - t0
     phases.on = False
     res = {"ms": {k: 1e3 * v / args.steps for k, v in phases.seconds.items()},
+           "kernel_ms": {k: 1e3 * v / args.steps for k, v in kernels.seconds.items()},
            "wall_ms": 1e3 * wall / args.steps, "n_gaussians": [n0, trainer.n],
            "t": [start + args.warmup + 1, trainer.t], "dtype": str(trainer.params["means"].dtype),
            "geometry": args.geometry or "input"}
@@ -311,8 +348,9 @@ def _row(cells: list) -> str:
 
 
 def table(run: Path, sources: list, results: dict, limits: list, pairs: float,
-          lanes: dict) -> str:
-    """The markdown table of one run: medians over the repeats, ratios to the first source."""
+          lanes: dict, kernels: bool = False) -> str:
+    """The markdown table of one run: medians over the repeats, ratios to the first source
+    (with ``kernels``, then one row per compiled kernel that ran through parallel_for)."""
     sgemm = statistics.median(l["sgemm_flops"] for l in limits)
     stream = statistics.median(l["stream_bytes"] for l in limits)
     t_lim = pairs * FLOPS_PER_PAIR / sgemm
@@ -353,6 +391,22 @@ def table(run: Path, sources: list, results: dict, limits: list, pairs: float,
             ("iteration / compute limit", {n: f"{wall[n] / 1e3 / t_lim:.1f}x" for n in names})]
     for label, vals in rows:
         lines.append(_row([label] + [vals[n] for n in names] + [""] * (len(names) - 1)))
+    if kernels:
+        lines += ["", _row(["compiled kernel (ms / iteration, inside the phases above)"] + names
+                           + [f"{n} / {first}" for n in names[1:]]),
+                  "|---" * (2 * len(names)) + "|"]
+        kmed = {n: {} for n in names}
+        for n in names:
+            for k in {k for r in results[n] for k in r.get("kernel_ms", {})}:
+                kmed[n][k] = statistics.median(r.get("kernel_ms", {}).get(k, 0.0)
+                                               for r in results[n])
+        order = sorted({k for n in names for k in kmed[n]},
+                       key=lambda k: -max(kmed[n].get(k, 0.0) for n in names))
+        for k in order:
+            vals = {n: kmed[n].get(k, 0.0) for n in names}
+            ratios = [f"{vals[n] / vals[first]:.2f}" if vals[first] > 0 else "-"
+                      for n in names[1:]]
+            lines.append(_row([f"`{k}`"] + [f"{vals[n]:.1f}" for n in names] + ratios))
     return "\n".join(lines)
 
 
@@ -370,6 +424,8 @@ def main(argv=None) -> None:
                     help="iteration to start from (default: the checkpoint's, or iters - 500)")
     ap.add_argument("--method", default=None, help="profile this method instead of the run's")
     ap.add_argument("--json", type=Path, default=None, help="write every measurement here")
+    ap.add_argument("--kernels", action="store_true",
+                    help="add a row per compiled kernel (refgs.fast's parallel_for calls)")
     ap.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--pairs", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--dtype", default=None, help=argparse.SUPPRESS)
@@ -400,7 +456,8 @@ def main(argv=None) -> None:
                         pairs = res["pairs"]
                 print(f"# {run.name} repeat {r + 1}/{args.repeats} {s['name']}: "
                       f"{res['wall_ms']:.1f} ms/it", file=sys.stderr, flush=True)
-        print(table(run, sources, results, limits, pairs, lanes) + "\n", flush=True)
+        print(table(run, sources, results, limits, pairs, lanes, args.kernels) + "\n",
+              flush=True)
         report["runs"][str(run)] = {"results": results, "limits": limits, "pairs": pairs,
                                     "lane_pairs": lanes}
     if args.json:

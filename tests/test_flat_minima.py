@@ -116,6 +116,19 @@ def test_fm02_same_seed_same_offsets_and_dtype():
         assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
 
 
+def test_sap_offsets_validation_switch():
+    """validate=False (the trainer's hook, whose render checks theta_hat) skips only the input
+    check: the same offsets and mask; by default a bad field is named."""
+    g = copies(300, [-1.0, -2.0, -0.5], [1.0, 0.2, -0.3, 0.1], np.float32)
+    a = sap_offsets(g, rng=np.random.default_rng(5))
+    b = sap_offsets(g, rng=np.random.default_rng(5), validate=False)
+    assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+    means = g.means.copy()
+    means[7, 1] = np.nan
+    with pytest.raises(ValueError, match="Gaussians.means"):
+        sap_offsets(g.replace(means=means), rng=np.random.default_rng(5))
+
+
 def test_fm01_offsets_of_the_perturbed_rows_are_the_whole_array_formula():
     """FM-01/FM-02: sap_offsets works on the perturbed rows only; each row equals, bit for bit,
     the whole-array formula delta = R clamp(alpha gamma sigma z) applied to every row and then

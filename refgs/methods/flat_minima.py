@@ -94,7 +94,8 @@ ISO_FIXED_FRACTION = 0.5
 
 def sap_offsets(gaussians: Gaussians, gamma: float = GAMMA, p: float = P_PERTURB, alpha: float = 1.0,
                 clamp: bool | str = True, rng: np.random.Generator | None = None,
-                noise: NoiseShape = NoiseShape()) -> tuple[np.ndarray, np.ndarray]:
+                noise: NoiseShape = NoiseShape(), validate: bool = True
+                ) -> tuple[np.ndarray, np.ndarray]:
     """Scale-Adaptive Perturbation offsets, masked, scheduled and clamped [FM-01..FM-04].
 
     gaussians  N Gaussians (validated like ``render``)
@@ -103,11 +104,15 @@ def sap_offsets(gaussians: Gaussians, gamma: float = GAMMA, p: float = P_PERTURB
     alpha      magnitude schedule value alpha(t), applied before the clamp
     clamp      True (= the default reading "axis"), False (= "none") or a CLAMP_MODES name
     rng        an explicitly seeded numpy Generator (required)
+    validate   check ``gaussians`` like ``render`` (API-03); False only for a caller that renders
+               theta_hat = theta + offsets right after (the trainer's FM hook), where the same
+               checks run on theta_hat, whose fields are theta's or non-finite where theta's are
     Returns ``(offsets (N,3) in the Gaussians' dtype, mask (N,) bool)``; offsets are exactly
     zero where mask is False.  Draw order: the mask (N uniforms), then z (N x 3 normals), so the
     same seed gives the same offsets.
     """
-    validate_gaussians(gaussians)
+    if validate:
+        validate_gaussians(gaussians)
     if not isinstance(rng, np.random.Generator):
         raise ValueError("rng: expected an explicitly seeded numpy.random.Generator, "
                          f"got {type(rng).__name__}")
