@@ -51,13 +51,20 @@ N_RASTER_CONSTANTS = 6
 G_MX, G_MY, G_A, G_B, G_C, G_O, G_R, G_G, G_BL, G_Z = range(10)
 N_GRAD_COLUMNS = 10
 _NPIX = TILE_SIZE * TILE_SIZE
-#: offsets of the forward's per-pixel state (T, colour r, g, b, depth, done flag), each a block
-#: of the tile's 256 pixels (row-major) in one array, so LLVM needs no alias checks between them
-_S_T, _S_R, _S_G, _S_B, _S_Z, _S_DONE = (k * _NPIX for k in range(6))
-_N_STATE = 6
-#: the backward's per-pixel state: T, suffix sum, tail, v_image r, g, b, v_depth
-_B_T, _B_SUF, _B_TAIL, _B_VR, _B_VG, _B_VB, _B_VZ = (k * _NPIX for k in range(7))
-_N_BSTATE = 7
+#: offsets of the forward's per-pixel state (T, colour r, g, b, depth, done flag, the pixel
+#: centre's x, the last blended list slot as a number of the dtype), each a block of the tile's
+#: 256 pixels (row-major) in one array: every access of the lane loop is then the same index
+#: plus a constant, so LLVM proves them independent and needs no run-time alias checks
+_S_T, _S_R, _S_G, _S_B, _S_Z, _S_DONE, _S_PX, _S_LAST = (k * _NPIX for k in range(8))
+_N_STATE = 8
+#: the backward's per-pixel state: T, suffix sum, tail, v_image r, g, b, v_depth, the pixel
+#: centre's x, the last blended slot (as in the forward)
+_B_T, _B_SUF, _B_TAIL, _B_VR, _B_VG, _B_VB, _B_VZ, _B_PX, _B_LAST = (k * _NPIX for k in range(9))
+_N_BSTATE = 9
+#: list slots are counted in the compositing dtype (the _S_LAST / _B_LAST blocks): exact up to
+#: 2**24 in float32 (its 24-bit significand), 2**53 in float64; refgs.fast.render refuses longer
+#: tile lists
+MAX_LIST_LENGTH = {np.dtype(np.float32): 2 ** 24, np.dtype(np.float64): 2 ** 53}
 #: lanes of half a tile row (the screen's half-row masks, refgs.fast.tiles.slot_rows)
 _HALF = TILE_SIZE // 2
 
@@ -74,7 +81,6 @@ def _forward_tiles(lo, hi, gauss, offsets, pos, means2d, conics, opac, colors, d
     dt = conics.dtype                       # the compositing dtype (means2d may be float64)
     tab = np.empty((max_len(offsets, lo, hi), N_TAB), dt)
     st = np.empty(_N_STATE * _NPIX, dt)
-    last = np.empty(_NPIX, np.int32)
     for tile in range(lo, hi):
         start = offsets[tile]
         L = offsets[tile + 1] - start
@@ -91,7 +97,8 @@ def _forward_tiles(lo, hi, gauss, offsets, pos, means2d, conics, opac, colors, d
             st[_S_G + p] = zero
             st[_S_B + p] = zero
             st[_S_Z + p] = zero
-            last[p] = 0
+            st[_S_LAST + p] = zero
+            st[_S_PX + p] = xs[p & (T - 1)]
         live_rows = 0                            # rows with a pixel still compositing
         for r in range(T):
             for c in range(T):                   # pixels past the image edge are done
@@ -108,7 +115,7 @@ def _forward_tiles(lo, hi, gauss, offsets, pos, means2d, conics, opac, colors, d
                 mx, my, A, B, C = tab[s, 0], tab[s, 1], tab[s, 2], tab[s, 3], tab[s, 4]
                 o, cr, cg, cb, z = tab[s, 5], tab[s, 6], tab[s, 7], tab[s, 8], tab[s, 9]
                 lx, ly = tab[s, 10], tab[s, 11]
-                slot = np.int32(s + 1)
+                slot = dt.type(s + 1)           # exact: L <= MAX_LIST_LENGTH
                 for r in range(T):
                     halves = (rows >> (2 * r)) & 3
                     if halves == 0 or ((live_rows >> r) & 1) == 0:
@@ -121,9 +128,14 @@ def _forward_tiles(lo, hi, gauss, offsets, pos, means2d, conics, opac, colors, d
                     # the row's lanes at once (one or both halves), masked (vectorised); a lane
                     # does what the per-pixel loop of the spec does: skip when done, power > 0
                     # (RAS-03) or alpha < 1/255 (RAS-04); stop without blending (RAS-05); else
-                    # blend
+                    # blend.  Every update is an unconditional store of arithmetic that leaves
+                    # the value unchanged where the lane does not blend (+ 0, * 1), not a select
+                    # of the old value: LLVM would make that a masked store, and a load of the
+                    # next slot from a masked store cannot take the store-forwarding path
+                    # (docs/fast.md, "Speed"); the results are the same bits
                     for c in range(0 if halves & 1 else _HALF, T if halves & 2 else _HALF):
-                        power = gaussian_power(A, B, Cdy2, (mx - xs[c]) + lx, dy, neg_half)
+                        power = gaussian_power(A, B, Cdy2, (mx - st[_S_PX + b + c]) + lx, dy,
+                                               neg_half)
                         a = min(cap, o * fast_exp(power))
                         Tc = st[_S_T + b + c]
                         test_T = Tc * (one - a)
@@ -133,13 +145,15 @@ def _forward_tiles(lo, hi, gauss, offsets, pos, means2d, conics, opac, colors, d
                         blend = live & (not stop)
                         stops |= stop
                         w = a * Tc
-                        st[_S_DONE + b + c] = one if stop else st[_S_DONE + b + c]
-                        st[_S_R + b + c] = st[_S_R + b + c] + cr * w if blend else st[_S_R + b + c]
-                        st[_S_G + b + c] = st[_S_G + b + c] + cg * w if blend else st[_S_G + b + c]
-                        st[_S_B + b + c] = st[_S_B + b + c] + cb * w if blend else st[_S_B + b + c]
-                        st[_S_Z + b + c] = st[_S_Z + b + c] + z * w if blend else st[_S_Z + b + c]
-                        st[_S_T + b + c] = test_T if blend else Tc
-                        last[b + c] = slot if blend else last[b + c]
+                        wb = w if blend else zero
+                        st[_S_DONE + b + c] = st[_S_DONE + b + c] + (one if stop else zero)
+                        st[_S_R + b + c] = st[_S_R + b + c] + cr * wb
+                        st[_S_G + b + c] = st[_S_G + b + c] + cg * wb
+                        st[_S_B + b + c] = st[_S_B + b + c] + cb * wb
+                        st[_S_Z + b + c] = st[_S_Z + b + c] + z * wb
+                        st[_S_T + b + c] = Tc * ((one - a) if blend else one)  # test_T or T
+                        lst = st[_S_LAST + b + c]
+                        st[_S_LAST + b + c] = lst + ((slot - lst) if blend else zero)
                     if stops:
                         done = True
                         for c in range(T):
@@ -161,7 +175,7 @@ def _forward_tiles(lo, hi, gauss, offsets, pos, means2d, conics, opac, colors, d
                 image[i, j, 2] = st[_S_B + p] + Tc * bg[2]
                 alpha_img[i, j] = one - Tc
                 depth_img[i, j] = st[_S_Z + p]
-                lc = last[p]
+                lc = np.int32(st[_S_LAST + p])
                 last_img[i, j] = lc
                 n_contrib[i, j] = pos[start + lc - 1] + 1 if lc > 0 else 0
                 final_T[i, j] = Tc
@@ -213,7 +227,6 @@ def _backward_tiles(lo, hi, gauss, offsets, means2d, conics, opac, colors, depth
     # one slot's partial sums per gradient field and lane, over the rows
     acc = np.empty(N_GRAD_COLUMNS * T, dt)
     st = np.empty(_N_BSTATE * _NPIX, dt)
-    last = np.empty(_NPIX, np.int32)
     row_last = np.empty(T, np.int32)         # per row: the largest last (list positions below)
     for tile in range(lo, hi):
         start = offsets[tile]
@@ -222,6 +235,8 @@ def _backward_tiles(lo, hi, gauss, offsets, means2d, conics, opac, colors, depth
         tx = tile - ty * gx
         ncols = min(T, W - tx * T)
         nrows = min(T, H - ty * T)
+        xs = centres(tx * T, tab)
+        ys = centres(ty * T, tab)
         tile_last = 0
         for r in range(T):
             row_last[r] = 0
@@ -238,7 +253,8 @@ def _backward_tiles(lo, hi, gauss, offsets, means2d, conics, opac, colors, depth
                 else:                                    # past the image edge: no fragments
                     lp = 0
                     Tf = vr = vg = vb = vz = va = zero
-                last[p] = lp
+                st[_B_LAST + p] = dt.type(lp)          # exact: L <= MAX_LIST_LENGTH
+                st[_B_PX + p] = xs[c]
                 row_last[r] = max(row_last[r], lp)
                 st[_B_T + p] = Tf
                 st[_B_SUF + p] = zero
@@ -251,8 +267,6 @@ def _backward_tiles(lo, hi, gauss, offsets, means2d, conics, opac, colors, depth
         if tile_last == 0:
             continue
         gather(gauss, start, tile_last, means2d, conics, opac, colors, depths, tab)
-        xs = centres(tx * T, tab)
-        ys = centres(ty * T, tab)
         for s in range(tile_last - 1, -1, -1):   # back to front
             rows = row_mask[start + s]
             for k in range(N_GRAD_COLUMNS * T):
@@ -261,7 +275,7 @@ def _backward_tiles(lo, hi, gauss, offsets, means2d, conics, opac, colors, depth
                 mx, my, A, B, C = tab[s, 0], tab[s, 1], tab[s, 2], tab[s, 3], tab[s, 4]
                 o, cr, cg, cb, z = tab[s, 5], tab[s, 6], tab[s, 7], tab[s, 8], tab[s, 9]
                 lx, ly = tab[s, 10], tab[s, 11]
-                s32 = np.int32(s)
+                sf = dt.type(s)
                 for r in range(T):
                     halves = (rows >> (2 * r)) & 3
                     if halves == 0 or s >= row_last[r]:
@@ -273,14 +287,16 @@ def _backward_tiles(lo, hi, gauss, offsets, means2d, conics, opac, colors, depth
                     # (vectorised); a lane is one pixel's step of the back-to-front walk: only
                     # fragments the forward blended (s < last, power <= 0, alpha >= 1/255)
                     # change T and the suffix sum or contribute (a lane of a half the screen
-                    # dropped fails the alpha test, so it would add exact zeros)
+                    # dropped fails the alpha test, so it would add exact zeros); T and the
+                    # suffix sum are stored unconditionally (* 1, + 0 elsewhere), as in the
+                    # forward
                     for c in range(0 if halves & 1 else _HALF, T if halves & 2 else _HALF):
-                        dx = (mx - xs[c]) + lx
+                        dx = (mx - st[_B_PX + b + c]) + lx
                         power = gaussian_power(A, B, Cdy2, dx, dy, neg_half)
                         G = fast_exp(power)
                         oG = o * G
                         a = min(cap, oG)
-                        live = (s32 < last[b + c]) & (not (power > zero)) & (not (a < amin))
+                        live = (sf < st[_B_LAST + b + c]) & (not (power > zero)) & (not (a < amin))
                         inv = one / (one - a)
                         Ti = st[_B_T + b + c] * inv                  # T before this fragment
                         vr, vg = st[_B_VR + b + c], st[_B_VG + b + c]
@@ -289,11 +305,11 @@ def _backward_tiles(lo, hi, gauss, offsets, means2d, conics, opac, colors, depth
                         w = a * Ti
                         suf = st[_B_SUF + b + c]
                         v_a = Ti * cv - (suf + st[_B_TAIL + b + c]) * inv
-                        st[_B_T + b + c] = Ti if live else st[_B_T + b + c]
-                        st[_B_SUF + b + c] = suf + w * cv if live else suf
+                        wl = w if live else zero
+                        st[_B_T + b + c] = st[_B_T + b + c] * (inv if live else one)   # Ti or T
+                        st[_B_SUF + b + c] = suf + wl * cv
                         v_oG = v_a if (live & (grad_through_cap | (oG <= cap))) else zero  # RAS-10
                         v_pow = v_oG * o * G
-                        wl = w if live else zero
                         g_mx = -(A * dx + B * dy) * v_pow
                         g_my = -(C * dy + B * dx) * v_pow
                         g_a = neg_half * dx * dx * v_pow

@@ -255,6 +255,10 @@ def render(gaussians, camera, config: RenderConfig | None = None, *,
     # intersections; module docstring of refgs.fast.tiles), n_contrib still counts full lists
     rect_off, live = live_intersections(order, rect, means2d_c, conics, opac, eps, screen)
     gauss, offsets, pos = build_tile_lists(order, rect, gx, gy, rect_off, live)
+    longest = int(np.max(np.diff(offsets))) if offsets.size > 1 else 0
+    if longest > rk.MAX_LIST_LENGTH[np.dtype(dt)]:       # the kernels count slots in dt
+        input_error("gaussians", f"at most {rk.MAX_LIST_LENGTH[np.dtype(dt)]} Gaussians on one "
+                    f"tile for {np.dtype(dt).name} compositing (render in float64)", longest)
     bg = np.asarray(config.background, dt)
     rc = _raster_constants(dt, profile)
     image = np.empty((H, W, 3), dt)
