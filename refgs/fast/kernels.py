@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import numpy as np
 from numba import njit
+from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros
 
 from ..constants import TILE_SIZE
 from .fexp import fast_exp
@@ -67,6 +68,15 @@ _N_BSTATE = 9
 MAX_LIST_LENGTH = {np.dtype(np.float32): 2 ** 24, np.dtype(np.float64): 2 ** 53}
 #: lanes of half a tile row (the screen's half-row masks, refgs.fast.tiles.slot_rows)
 _HALF = TILE_SIZE // 2
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def row_span(rows):
+    """First and last pixel row with a bit in a non-zero half-row mask (refgs.fast.tiles.slot_rows:
+    bits 2 r, 2 r + 1 for row r), from the mask's trailing and leading zero counts; masked to
+    0..15 so that LLVM sees the row indices in range (no negative-index wrap in the lane loops)."""
+    T = TILE_SIZE
+    return (trailing_zeros(rows) >> 1) & (T - 1), ((63 - leading_zeros(rows)) >> 1) & (T - 1)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -116,7 +126,8 @@ def _forward_tiles(lo, hi, gauss, offsets, pos, means2d, conics, opac, colors, d
                 o, cr, cg, cb, z = tab[s, 5], tab[s, 6], tab[s, 7], tab[s, 8], tab[s, 9]
                 lx, ly = tab[s, 10], tab[s, 11]
                 slot = dt.type(s + 1)           # exact: L <= MAX_LIST_LENGTH
-                for r in range(T):
+                r_first, r_last = row_span(rows)
+                for r in range(r_first, r_last + 1):
                     halves = (rows >> (2 * r)) & 3
                     if halves == 0 or ((live_rows >> r) & 1) == 0:
                         continue
@@ -276,7 +287,8 @@ def _backward_tiles(lo, hi, gauss, offsets, means2d, conics, opac, colors, depth
                 o, cr, cg, cb, z = tab[s, 5], tab[s, 6], tab[s, 7], tab[s, 8], tab[s, 9]
                 lx, ly = tab[s, 10], tab[s, 11]
                 sf = dt.type(s)
-                for r in range(T):
+                r_first, r_last = row_span(rows)
+                for r in range(r_first, r_last + 1):
                     halves = (rows >> (2 * r)) & 3
                     if halves == 0 or s >= row_last[r]:
                         continue
