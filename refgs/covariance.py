@@ -40,18 +40,19 @@ def normalize_quats(quats: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
 
 def quat_to_rotmat(q_unit: np.ndarray) -> np.ndarray:
     """Rotation matrices (N, 3, 3) from unit quaternions (N, 4) (w, x, y, z) (CNV-04)."""
-    w, x, y, z = (q_unit[:, i] for i in range(4))
-    R = np.empty(q_unit.shape[:-1] + (3, 3), dtype=q_unit.dtype)
-    R[:, 0, 0] = 1 - 2 * (y * y + z * z)
-    R[:, 0, 1] = 2 * (x * y - w * z)
-    R[:, 0, 2] = 2 * (x * z + w * y)
-    R[:, 1, 0] = 2 * (x * y + w * z)
-    R[:, 1, 1] = 1 - 2 * (x * x + z * z)
-    R[:, 1, 2] = 2 * (y * z - w * x)
-    R[:, 2, 0] = 2 * (x * z - w * y)
-    R[:, 2, 1] = 2 * (y * z + w * x)
-    R[:, 2, 2] = 1 - 2 * (x * x + y * y)
-    return R
+    q = np.asarray(q_unit)
+    w, x, y, z = np.ascontiguousarray(np.moveaxis(q, -1, 0))    # components as contiguous rows
+    rows = np.empty((9,) + q.shape[:-1], dtype=q.dtype)         # R's entries, row-major
+    rows[0] = 1 - 2 * (y * y + z * z)
+    rows[1] = 2 * (x * y - w * z)
+    rows[2] = 2 * (x * z + w * y)
+    rows[3] = 2 * (x * y + w * z)
+    rows[4] = 1 - 2 * (x * x + z * z)
+    rows[5] = 2 * (y * z - w * x)
+    rows[6] = 2 * (x * z - w * y)
+    rows[7] = 2 * (y * z + w * x)
+    rows[8] = 1 - 2 * (x * x + y * y)
+    return np.ascontiguousarray(np.moveaxis(rows, 0, -1)).reshape(q.shape[:-1] + (3, 3))
 
 
 def covariance_3d(quats: np.ndarray, log_scales: np.ndarray, profile=None) -> dict:
