@@ -19,6 +19,7 @@ are checked one by one against ILL_COND_RTOL cond^2.
 """
 from __future__ import annotations
 
+import importlib
 import subprocess
 import sys
 
@@ -142,6 +143,25 @@ def test_f64_opaque_stack(profile):
     length = int(np.diff(out.cache["lists"]["offsets"])[tile])
     assert length == n and 0 < out.n_contrib[i, j] < n // 2   # cut off early in the list
     assert out.final_T[i, j] < 1e-3
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_tile_lists_longer_than_the_slot_counter_are_refused(monkeypatch, dtype):
+    """The kernels count list slots in the compositing dtype (exact up to MAX_LIST_LENGTH, 2**24
+    in float32); render refuses a longer tile list with a ValueError naming ``gaussians``.  The
+    limit is lowered here to the 20 Gaussians stacked on one tile."""
+    kernels = importlib.import_module("refgs.fast.kernels")
+    assert kernels.MAX_LIST_LENGTH[np.dtype(np.float32)] == 2 ** 24
+    cam = Camera.look_at((0, 0, -4.0), (0, 0, 0), fx=30, width=40, height=32)
+    n = 20
+    t_cam = np.stack([np.zeros(n), np.zeros(n), np.linspace(3.0, 5.0, n)], -1)
+    g = Gaussians((t_cam - cam.translation) @ cam.rotation, np.full((n, 3), np.log(0.4)),
+                  np.tile([1.0, 0, 0, 0], (n, 1)), np.full(n, 2.0), np.zeros((n, 1, 3))).astype(dtype)
+    monkeypatch.setattr(kernels, "MAX_LIST_LENGTH", {np.dtype(dtype): n})
+    assert fast.render(g, cam).n_contrib.max() > 0                  # 20 entries: at the limit
+    monkeypatch.setattr(kernels, "MAX_LIST_LENGTH", {np.dtype(dtype): n - 1})
+    with pytest.raises(ValueError, match="gaussians: expected at most 19 Gaussians on one tile"):
+        fast.render(g, cam)
 
 
 @pytest.mark.parametrize("profile", ["inria", "gsplat"])

@@ -12,10 +12,13 @@ and the screen are refgs.fast.tiles'.
   then visits those rows of the tile, and in each row its 16 pixels; every pixel keeps its own
   T, colour, depth and done flag, so each pixel sees the slots in list order, which is the
   per-pixel front-to-back order of the spec.  The row's 16 pixels are 16 *lanes* computed
-  without branches (every test a mask, every update a select), so LLVM turns the lane loop into
-  SIMD code; exp is refgs.fast.fexp.fast_exp (within 1 ulp of exp; ``math.exp`` is a scalar
-  library call that stops vectorisation).  A row is left once its 16 pixels have stopped, the
-  tile once every row has.
+  without branches (every test a mask; every update an unconditional store of arithmetic that
+  leaves the value as it is where the lane does not blend: + 0, * 1), so LLVM turns the lane
+  loop into SIMD code; exp is refgs.fast.fexp.fast_exp (within 1 ulp of exp; ``math.exp`` is a
+  scalar library call that stops vectorisation).  The per-pixel state, the pixel centres' x and
+  the last blended slot (counted in the dtype, exact up to MAX_LIST_LENGTH) live in one array at
+  fixed offsets, so the lane loop needs no run-time alias checks.  A row is left once its 16
+  pixels have stopped, the tile once every row has.
 * :func:`composite_backward` -- over a range of tiles; each pixel's blended fragments are walked
   back to front from list position n_contrib (the tile starts at its largest), T_i recovered from
   T_final by division as the original does (T_i = T_{i+1} * (1 / (1 - alpha_i)); docs/fast.md,
