@@ -63,7 +63,10 @@ def test_fast_backend_offers_it_to_the_loss():
     assert not hasattr(get_backend("reference"), "ssim_and_grad")
 
 
-@pytest.mark.parametrize("shape", [(37, 53, 3), (12, 30), (6, 4, 3), (1, 1, 3)])
+# heights across the bands of the fused pass (LOSS_BAND_ROWS = 64): one band, a band edge at
+# 64 (and 10 rows on either side of it), a last band of 3 rows, fewer rows than a tap window
+@pytest.mark.parametrize("shape", [(37, 53, 3), (12, 30), (6, 4, 3), (1, 1, 3), (64, 9, 3),
+                                   (74, 6), (131, 17, 3), (200, 5, 2)])
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 @pytest.mark.parametrize("form", ["l1_plus", "blend"])
 def test_whole_loss_gradient_is_the_specs_bit_for_bit(shape, dtype, form):

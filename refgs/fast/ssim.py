@@ -13,9 +13,11 @@ intermediate row stays in cache:
     pass 2, per row: adjw filtered along H (reversed kernel), combined into d SSIM / d x
 
 Before them, pass 0 turns the (H, W, C) images into float64 channel planes and checks them
-finite (one threaded pass, no intermediate copies).  :func:`l1_ssim_loss` (TRN-08) replaces pass
-2's output by the whole loss gradient, the L1 subgradient added in the same row loop, so the
-loss takes no numpy pass over the image at all.
+finite (one threaded pass, no intermediate copies).  :func:`l1_ssim_loss` (TRN-08), the
+training loss, runs the three passes as one: each work item walks a band of rows of one channel
+with the three stages 5 rows behind one another, its rows held in rings of 16 rows (in cache)
+instead of (C, H, W) planes (in memory), and adds the L1 subgradient in pass 2's row loop, so
+the loss writes nothing but its gradient and takes no numpy pass over the image at all.
 
 Each pass is split by rows over ``numba.get_num_threads()`` threads
 (``refgs.fast.render.parallel_for``); every output element is a sum over the same 11 taps in a
@@ -75,42 +77,45 @@ def _along_w(buf, w, g, out):
 
 
 @njit(nogil=True, cache=True, error_model="numpy")
-def _moments_h(x, y, p, i, g, hb):
-    """The H-pass of the five moments at row i of channel p into hb[k, 5 : 5 + W] (k: x, y, x²,
-    y², xy): sum over the input rows i - 5 .. i + 5 inside the image, in tap order."""
-    h = x.shape[1]
-    w = x.shape[2]
+def _moments_h(xp, yp, i, h, mask, g, hb):
+    """The H-pass of the five moments at image row i (of H = h) into hb[k, 5 : 5 + W] (k: x, y,
+    x², y², xy): sum over the input rows i - 5 .. i + 5 inside the image, in tap order.  Image
+    row ii is row ``ii & mask`` of xp, yp (R, W): a channel plane (mask -1) or a ring of rows
+    (mask R - 1, :func:`_pass_loss`)."""
+    w = xp.shape[1]
     r = SSIM_PAD
     if r <= i < h - r:
         # all 11 rows inside: each moment in its own loop over j that reads one or two whole
-        # planes (so LLVM needs one alias check per plane and vectorises it), sums in registers
-        xp = x[p]
-        yp = y[p]
+        # row stores (so LLVM needs one alias check per store and vectorises it), sums in
+        # registers
+        k0, k1, k2, k3 = (i - 5) & mask, (i - 4) & mask, (i - 3) & mask, (i - 2) & mask
+        k4, k5, k6, k7 = (i - 1) & mask, i & mask, (i + 1) & mask, (i + 2) & mask
+        k8, k9, k10 = (i + 3) & mask, (i + 4) & mask, (i + 5) & mask
         for j in range(w):
-            hb[0, r + j] = _taps11(g, xp[i - 5, j], xp[i - 4, j], xp[i - 3, j], xp[i - 2, j],
-                                   xp[i - 1, j], xp[i, j], xp[i + 1, j], xp[i + 2, j],
-                                   xp[i + 3, j], xp[i + 4, j], xp[i + 5, j])
+            hb[0, r + j] = _taps11(g, xp[k0, j], xp[k1, j], xp[k2, j], xp[k3, j], xp[k4, j],
+                                   xp[k5, j], xp[k6, j], xp[k7, j], xp[k8, j], xp[k9, j],
+                                   xp[k10, j])
         for j in range(w):
-            hb[1, r + j] = _taps11(g, yp[i - 5, j], yp[i - 4, j], yp[i - 3, j], yp[i - 2, j],
-                                   yp[i - 1, j], yp[i, j], yp[i + 1, j], yp[i + 2, j],
-                                   yp[i + 3, j], yp[i + 4, j], yp[i + 5, j])
+            hb[1, r + j] = _taps11(g, yp[k0, j], yp[k1, j], yp[k2, j], yp[k3, j], yp[k4, j],
+                                   yp[k5, j], yp[k6, j], yp[k7, j], yp[k8, j], yp[k9, j],
+                                   yp[k10, j])
         for j in range(w):
-            hb[2, r + j] = _taps11(g, _sq(xp[i - 5, j]), _sq(xp[i - 4, j]), _sq(xp[i - 3, j]),
-                                   _sq(xp[i - 2, j]), _sq(xp[i - 1, j]), _sq(xp[i, j]),
-                                   _sq(xp[i + 1, j]), _sq(xp[i + 2, j]), _sq(xp[i + 3, j]),
-                                   _sq(xp[i + 4, j]), _sq(xp[i + 5, j]))
+            hb[2, r + j] = _taps11(g, _sq(xp[k0, j]), _sq(xp[k1, j]), _sq(xp[k2, j]),
+                                   _sq(xp[k3, j]), _sq(xp[k4, j]), _sq(xp[k5, j]),
+                                   _sq(xp[k6, j]), _sq(xp[k7, j]), _sq(xp[k8, j]),
+                                   _sq(xp[k9, j]), _sq(xp[k10, j]))
         for j in range(w):
-            hb[3, r + j] = _taps11(g, _sq(yp[i - 5, j]), _sq(yp[i - 4, j]), _sq(yp[i - 3, j]),
-                                   _sq(yp[i - 2, j]), _sq(yp[i - 1, j]), _sq(yp[i, j]),
-                                   _sq(yp[i + 1, j]), _sq(yp[i + 2, j]), _sq(yp[i + 3, j]),
-                                   _sq(yp[i + 4, j]), _sq(yp[i + 5, j]))
+            hb[3, r + j] = _taps11(g, _sq(yp[k0, j]), _sq(yp[k1, j]), _sq(yp[k2, j]),
+                                   _sq(yp[k3, j]), _sq(yp[k4, j]), _sq(yp[k5, j]),
+                                   _sq(yp[k6, j]), _sq(yp[k7, j]), _sq(yp[k8, j]),
+                                   _sq(yp[k9, j]), _sq(yp[k10, j]))
         for j in range(w):
-            hb[4, r + j] = _taps11(g, xp[i - 5, j] * yp[i - 5, j], xp[i - 4, j] * yp[i - 4, j],
-                                   xp[i - 3, j] * yp[i - 3, j], xp[i - 2, j] * yp[i - 2, j],
-                                   xp[i - 1, j] * yp[i - 1, j], xp[i, j] * yp[i, j],
-                                   xp[i + 1, j] * yp[i + 1, j], xp[i + 2, j] * yp[i + 2, j],
-                                   xp[i + 3, j] * yp[i + 3, j], xp[i + 4, j] * yp[i + 4, j],
-                                   xp[i + 5, j] * yp[i + 5, j])
+            hb[4, r + j] = _taps11(g, xp[k0, j] * yp[k0, j], xp[k1, j] * yp[k1, j],
+                                   xp[k2, j] * yp[k2, j], xp[k3, j] * yp[k3, j],
+                                   xp[k4, j] * yp[k4, j], xp[k5, j] * yp[k5, j],
+                                   xp[k6, j] * yp[k6, j], xp[k7, j] * yp[k7, j],
+                                   xp[k8, j] * yp[k8, j], xp[k9, j] * yp[k9, j],
+                                   xp[k10, j] * yp[k10, j])
         return
     for k in range(5):                       # border rows: the taps inside, in order
         for j in range(w):
@@ -119,8 +124,8 @@ def _moments_h(x, y, p, i, g, hb):
         ii = i + a - r
         if 0 <= ii < h:
             ga = g[a]
-            xs = x[p, ii]
-            ys = y[p, ii]
+            xs = xp[ii & mask]
+            ys = yp[ii & mask]
             for j in range(w):
                 xv = xs[j]
                 yv = ys[j]
@@ -173,7 +178,7 @@ def _pass_moments(lo, hi, x, y, g, g_rev, inv_n, c1, c2, smap, adjw):
     for item in range(lo, hi):
         p = item // h
         i = item - p * h
-        _moments_h(x, y, p, i, g, hb)
+        _moments_h(x[p], y[p], i, h, -1, g, hb)
         for k in range(5):
             _along_w(hb[k], w, g, mom[k])
         _ssim_row(mom[0], mom[1], mom[2], mom[3], mom[4], w, inv_n, c1, c2, smap[p, i],
@@ -183,18 +188,22 @@ def _pass_moments(lo, hi, x, y, g, g_rev, inv_n, c1, c2, smap, adjw):
 
 
 @njit(nogil=True, cache=True, inline="always", error_model="numpy")
-def _adjoint_h(adjw, p, i, c, h, w, g_rev, t):
+def _adjoint_h(adjw, p, i, c, h, w, g_rev, t, mask):
     """t (3, W) = the adjoint's H-pass (reversed kernel) of the three planes adjw[k C + p] at
-    row i: the taps inside the image, in tap order."""
+    image row i (of H = h): the taps inside the image, in tap order; image row ii is row
+    ``ii & mask`` of a plane (mask -1: whole planes; R - 1: rings of R rows)."""
     r = SSIM_PAD
     for k in range(3):
         q = k * c + p
+        sp = adjw[q]
         if r <= i < h - r:
-            sp = adjw[q]
+            k0, k1, k2, k3 = (i - 5) & mask, (i - 4) & mask, (i - 3) & mask, (i - 2) & mask
+            k4, k5, k6, k7 = (i - 1) & mask, i & mask, (i + 1) & mask, (i + 2) & mask
+            k8, k9, k10 = (i + 3) & mask, (i + 4) & mask, (i + 5) & mask
             for j in range(w):
-                t[k, j] = _taps11(g_rev, sp[i - 5, j], sp[i - 4, j], sp[i - 3, j],
-                                  sp[i - 2, j], sp[i - 1, j], sp[i, j], sp[i + 1, j],
-                                  sp[i + 2, j], sp[i + 3, j], sp[i + 4, j], sp[i + 5, j])
+                t[k, j] = _taps11(g_rev, sp[k0, j], sp[k1, j], sp[k2, j], sp[k3, j], sp[k4, j],
+                                  sp[k5, j], sp[k6, j], sp[k7, j], sp[k8, j], sp[k9, j],
+                                  sp[k10, j])
         else:
             for j in range(w):
                 t[k, j] = 0.0
@@ -202,7 +211,7 @@ def _adjoint_h(adjw, p, i, c, h, w, g_rev, t):
                 ii = i + a - r
                 if 0 <= ii < h:
                     ga = g_rev[a]
-                    s = adjw[q, ii]
+                    s = sp[ii & mask]
                     for j in range(w):
                         t[k, j] += ga * s[j]
 
@@ -218,7 +227,7 @@ def _pass_adjoint(lo, hi, adjw, x, y, g_rev, grad):
     for item in range(lo, hi):
         p = item // h
         i = item - p * h
-        _adjoint_h(adjw, p, i, c, h, w, g_rev, t)
+        _adjoint_h(adjw, p, i, c, h, w, g_rev, t, -1)
         for j in range(w):
             grad[i, j, p] = t[0, j] + 2.0 * x[p, i, j] * t[1, j] + y[p, i, j] * t[2, j]
 
@@ -243,40 +252,97 @@ def _pass_planes(lo, hi, img, gt, x, y, bad):
         bad[item] = nb
 
 
+#: image rows of one channel per work item of :func:`_pass_loss`: each item also filters the 10
+#: rows around its band (their moments feed its rows' adjoint), so longer bands repeat less
+#: (10 / 64 of the moments' work at 64) and shorter ones balance the threads better (a 378-row
+#: fern view gives 3 x 6 = 18 items)
+LOSS_BAND_ROWS = 64
+#: rows of the ring stores of :func:`_pass_loss` (at least the 11 live rows of a tap window, a
+#: power of two so that image row ii sits at ii & (_RING - 1))
+_RING = 16
+
+
 @njit(nogil=True, cache=True, error_model="numpy")
-def _pass_loss_grad(lo, hi, adjw, x, y, g_rev, w_l1, w_ssim, n, grad, l1_rows):
-    """Pass 2 of :func:`l1_ssim_loss` for channel-rows lo..hi: d SSIM / d x as in
-    :func:`_pass_adjoint` (same expressions), the L1 subgradient sign(x - y) / n, and
-    grad[i, j, p] = w_l1 sign / n - w_ssim d SSIM / d x, rounded once to grad's dtype: the
-    operations of ``refgs.train.loss.photometric_loss`` element for element.  l1_rows[item] =
-    the row's sum of |x - y| (in column order)."""
-    c = x.shape[0]
-    h = x.shape[1]
-    w = x.shape[2]
+def _pass_loss(lo, hi, img, gt, n_bands, g, g_rev, inv_n, c1, c2, w_l1, w_ssim, n, grad,
+               ssim_rows, l1_rows, bad):
+    """:func:`l1_ssim_loss` for work items lo..hi, item = p n_bands + band: image rows
+    band LOSS_BAND_ROWS .. + LOSS_BAND_ROWS of channel p, from (H, W, C) img and gt.
+
+    One walk down the rows k of the band and the 10 on either side, three stages behind one
+    another: row k read into float64 ring stores (exact: ``astype(float64)``; its non-finite
+    values counted in bad), the moments' H- and W-passes, the pointwise chain and the adjoint's
+    W-pass at row k - 5 (as :func:`_pass_moments`), then at row k - 10 the adjoint's H-pass and
+    grad[i, j, p] = w_l1 sign(x - y) / n - w_ssim d SSIM / d x, rounded once to grad's dtype
+    (as ``refgs.train.loss.photometric_loss``, element for element).  Every filtered value is
+    the same sum in the same order as in the separate passes; the rings keep the rows in cache
+    instead of whole (C, H, W) planes in memory.  ssim_rows / l1_rows [p H + i]: row i's sums of
+    the SSIM map and of |x - y|, in column order."""
+    h = img.shape[0]
+    w = img.shape[1]
+    r = SSIM_PAD
+    m = _RING - 1
+    X = np.empty((_RING, w))
+    Y = np.empty((_RING, w))
+    adj = np.empty((3, _RING, w))            # the chain's adjoint inputs after their W-pass
+    hb = np.zeros((5, w + 2 * r))            # H-pass rows, zero-padded for the W-pass
+    mom = np.empty((5, w))
+    ab = np.zeros((3, w + 2 * r))            # adjoint inputs, zero-padded for their W-pass
+    srow = np.empty(w)
     t = np.empty((3, w))
     for item in range(lo, hi):
-        p = item // h
-        i = item - p * h
-        _adjoint_h(adjw, p, i, c, h, w, g_rev, t)
-        acc = 0.0
-        for j in range(w):
-            g_s = t[0, j] + 2.0 * x[p, i, j] * t[1, j] + y[p, i, j] * t[2, j]
-            d = x[p, i, j] - y[p, i, j]
-            sgn = 1.0 if d > 0.0 else (-1.0 if d < 0.0 else 0.0)
-            grad[i, j, p] = w_l1 * (sgn / n) - w_ssim * g_s     # rounded to grad's dtype
-            acc += abs(d)
-        l1_rows[item] = acc
+        p = item // n_bands
+        i0 = (item - p * n_bands) * LOSS_BAND_ROWS
+        i1 = min(h, i0 + LOSS_BAND_ROWS)
+        k_end = min(h, i1 + 2 * r)                               # the last row read + 1
+        for k in range(max(0, i0 - 2 * r), k_end + 2 * r):
+            if k < k_end:                                        # read row k
+                nb = 0
+                for j in range(w):
+                    xv = np.float64(img[k, j, p])
+                    yv = np.float64(gt[k, j, p])
+                    X[k & m, j] = xv
+                    Y[k & m, j] = yv
+                    nb += (not math.isfinite(xv)) + (not math.isfinite(yv))
+                if i0 <= k < i1:
+                    bad[p * h + k] = nb
+            km = k - r                                           # moments of row k - 5
+            if max(0, i0 - r) <= km < min(h, i1 + r):
+                _moments_h(X, Y, km, h, m, g, hb)
+                for q in range(5):
+                    _along_w(hb[q], w, g, mom[q])
+                _ssim_row(mom[0], mom[1], mom[2], mom[3], mom[4], w, inv_n, c1, c2, srow,
+                          ab[0, r:], ab[1, r:], ab[2, r:])
+                for q in range(3):
+                    _along_w(ab[q], w, g_rev, adj[q, km & m])
+                if i0 <= km < i1:
+                    acc = 0.0
+                    for j in range(w):
+                        acc += srow[j]
+                    ssim_rows[p * h + km] = acc
+            i = k - 2 * r                                        # gradient of row k - 10
+            if i0 <= i < i1:
+                _adjoint_h(adj, 0, i, 1, h, w, g_rev, t, m)
+                ki = i & m
+                acc = 0.0
+                for j in range(w):
+                    xv = X[ki, j]
+                    yv = Y[ki, j]
+                    g_s = t[0, j] + 2.0 * xv * t[1, j] + yv * t[2, j]
+                    d = xv - yv
+                    sgn = 1.0 if d > 0.0 else (-1.0 if d < 0.0 else 0.0)
+                    grad[i, j, p] = w_l1 * (sgn / n) - w_ssim * g_s  # rounded to grad's dtype
+                    acc += abs(d)
+                l1_rows[p * h + i] = acc
 
 
 #: input dtypes :func:`_pass_planes` is compiled for (others are converted by numpy first)
 _PLANE_DTYPES = (np.dtype(np.float32), np.dtype(np.float64))
 
 
-def _image_pair(img, gt, name: str = "ssim_and_grad") -> tuple[np.ndarray, np.ndarray, tuple]:
-    """float64 channel planes (C, H, W) of img and gt and img's shape; ValueError naming
-    ``name`` for mismatched shapes, other ranks or non-finite values (the reference's checks and
-    messages).  float32 / float64 images are converted by the threaded :func:`_pass_planes` (no
-    intermediate copies), others through numpy."""
+def _checked_pair(img, gt, name: str) -> tuple[np.ndarray, np.ndarray, tuple]:
+    """img and gt as (H, W, C) arrays of float32 or float64 (others converted by numpy) and
+    img's shape; ValueError naming ``name`` for mismatched shapes or other ranks (the
+    reference's checks and messages; finiteness is checked by the passes that read them)."""
     a, b = np.asarray(img), np.asarray(gt)
     if a.shape != b.shape:
         raise ValueError(f"{name}: img and gt must have the same shape, got {a.shape} "
@@ -289,12 +355,24 @@ def _image_pair(img, gt, name: str = "ssim_and_grad") -> tuple[np.ndarray, np.nd
         a, b = a[..., None], b[..., None]
     if a.dtype not in _PLANE_DTYPES or b.dtype not in _PLANE_DTYPES:
         a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    return a, b, shape
+
+
+def _finite_or_error(bad, name: str) -> None:
+    if bad.any():
+        raise ValueError(f"{name}: img and gt must contain only finite values")
+
+
+def _image_pair(img, gt, name: str = "ssim_and_grad") -> tuple[np.ndarray, np.ndarray, tuple]:
+    """float64 channel planes (C, H, W) of img and gt and img's shape (:func:`_checked_pair`;
+    ValueError for non-finite values), converted by the threaded :func:`_pass_planes` (no
+    intermediate copies)."""
+    a, b, shape = _checked_pair(img, gt, name)
     h, w, c = a.shape
     x, y = np.empty((c, h, w)), np.empty((c, h, w))
     bad = np.empty(c * h, np.int64)
     parallel_for(_pass_planes, c * h, a, b, x, y, bad)
-    if bad.any():
-        raise ValueError(f"{name}: img and gt must contain only finite values")
+    _finite_or_error(bad, name)
     return x, y, shape
 
 
@@ -335,18 +413,21 @@ def l1_ssim_loss(render: np.ndarray, gt: np.ndarray, w_l1: float, w_ssim: float
     render, gt: (H, W, C) or (H, W), same shape, finite.  Returns ``(loss, grad)``: grad with
     render's shape and floating dtype (float64 for integer input), element for element the
     reference's ``w_l1 sign(d) / N - w_ssim dSSIM/d render`` rounded once to that dtype
-    (bit-identical); the loss a Python float whose L1 mean is summed by rows (it may differ
-    from the reference's pairwise ``np.mean`` in the last bits; the SSIM mean is the same).
+    (bit-identical); the loss a Python float whose L1 and SSIM means are summed by rows (they
+    may differ from the reference's pairwise ``np.mean`` in the last bits).  One compiled pass
+    over bands of rows (:func:`_pass_loss`): no (C, H, W) intermediate is written.
     """
-    x, y, shape = _image_pair(render, gt, "l1_ssim_loss")
-    c, h, w = x.shape
-    smap, adjw = _moments(x, y)
-    grad = np.empty((h, w, c), _out_dtype(render))
-    l1_rows = np.empty(c * h)
+    a, b, shape = _checked_pair(render, gt, "l1_ssim_loss")
+    h, w, c = a.shape
     n = c * h * w
-    parallel_for(_pass_loss_grad, c * h, adjw, x, y, _G_REV, float(w_l1), float(w_ssim), float(n),
-                 grad, l1_rows)
-    s = float(np.mean(smap))
+    n_bands = -(-h // LOSS_BAND_ROWS)
+    grad = np.empty((h, w, c), _out_dtype(render))
+    ssim_rows, l1_rows = np.empty(c * h), np.empty(c * h)
+    bad = np.empty(c * h, np.int64)
+    parallel_for(_pass_loss, c * n_bands, a, b, n_bands, _G, _G_REV, 1.0 / n, SSIM_C1, SSIM_C2,
+                 float(w_l1), float(w_ssim), float(n), grad, ssim_rows, l1_rows, bad)
+    _finite_or_error(bad, "l1_ssim_loss")
+    s = float(ssim_rows.sum()) / n
     l1 = float(l1_rows.sum()) / n
     return float(w_l1) * l1 + float(w_ssim) * (1.0 - s), grad.reshape(shape)
 
