@@ -78,7 +78,7 @@ KERNEL_PHASES = {
     "reduce_by_gaussian": "per-Gaussian bwd", "gaussians_backward": "per-Gaussian bwd",
     "_correlate_rows": "SSIM", "_correlate_cols": "SSIM", "_pointwise": "SSIM", "_combine": "SSIM",
     "_pass_moments": "SSIM", "_pass_adjoint": "SSIM", "_pass_planes": "SSIM",
-    "_pass_loss_grad": "SSIM", "_pass_loss": "SSIM",
+    "_pass_loss_grad": "SSIM", "_pass_loss": "SSIM", "screen_inputs": "tile lists",
     "_update": "Adam",
 }
 PHASES = ("projection", "depth sort", "tile lists", "composite fwd", "composite bwd",

@@ -126,30 +126,39 @@ def _every_intersection(order, rect):
     return rect_off, np.ones(int(rect_off[-1]), np.bool_)
 
 
-def live_intersections(order, rect, means2d, conics, opac, eps: float, screen: bool = True):
+def live_intersections(order, rect, means2d, conics, opac, eps: float, screen: bool = True,
+                       rect_s=None):
     """(rect_off (V+1,) int64, live (P_full,) bool): for each visible Gaussian order[k] and each
     tile of its rectangle (row-major, from rect_off[k]) whether the screen may keep it in some
     pixel row there (refgs.fast.tiles.tile_alive, conservative, per Gaussian on the threads);
-    all True without the screen (``screen=False``: the spec's full lists)."""
+    all True without the screen (``screen=False``: the spec's full lists).  ``rect_s``:
+    rect[order] (refgs.fast.tiles.rects_in_order) if the caller has it."""
     rect_off, live = _every_intersection(order, rect)
     if not screen:
         return rect_off, live
-    parallel_for(tl.tile_alive, order.size, order, rect, rect_off, means2d, conics, opac,
-                 float(eps), live, min_chunk=MIN_GAUSSIAN_CHUNK // 8)
+    if rect_s is None:
+        rect_s = tl.rects_in_order(order, rect)
+    scr = np.empty((order.size, 6), np.float64)
+    parallel_for(tl.screen_inputs, order.size, order, means2d, conics, opac, scr,
+                 min_chunk=MIN_GAUSSIAN_CHUNK)
+    parallel_for(tl.tile_alive, order.size, rect_s, rect_off, scr, float(eps), live,
+                 min_chunk=MIN_GAUSSIAN_CHUNK // 8)
     return rect_off, live
 
 
-def build_tile_lists(order, rect, gx: int, gy: int, rect_off=None, live=None):
+def build_tile_lists(order, rect, gx: int, gy: int, rect_off=None, live=None, rect_s=None):
     """refgs.fast.tiles.build_tile_lists (RAS-01, RAS-02) with both passes over chunks of the
     Gaussians in depth order on the threads: each chunk counts its own entries per tile, and
     its entries of a tile are placed after those of the chunks before (tiles.chunk_starts), so
     the lists are the sequential ones.  ``rect_off``/``live`` from :func:`live_intersections`
-    (default: every intersection, the full lists).  Returns (gauss (P,) int64, offsets
-    (gx gy + 1,) int64, pos (P,) int32: each entry's position in its tile's full list)."""
+    (default: every intersection, the full lists), ``rect_s`` = rect[order] if the caller has it.
+    Returns (gauss (P,) int64, offsets (gx gy + 1,) int64, pos (P,) int32: each entry's position
+    in its tile's full list)."""
     if live is None:
         rect_off, live = _every_intersection(order, rect)
     V, n_tiles = order.size, gx * gy
-    rect_s = tl.rects_in_order(order, rect)
+    if rect_s is None:
+        rect_s = tl.rects_in_order(order, rect)
     n_threads = max(1, int(numba.get_num_threads()))
     chunk = chunk_length(V, max(MIN_LIST_CHUNK, -(-V // n_threads)))    # one chunk per thread
     n_chunks = max(1, -(-V // chunk))
@@ -253,8 +262,9 @@ def render(gaussians, camera, config: RenderConfig | None = None, *,
     eps = float(np.finfo(dt).eps)
     # the tile lists keep only the Gaussians the screen keeps in some row of a tile (live
     # intersections; module docstring of refgs.fast.tiles), n_contrib still counts full lists
-    rect_off, live = live_intersections(order, rect, means2d_c, conics, opac, eps, screen)
-    gauss, offsets, pos = build_tile_lists(order, rect, gx, gy, rect_off, live)
+    rect_s = tl.rects_in_order(order, rect)                       # rect[order]
+    rect_off, live = live_intersections(order, rect, means2d_c, conics, opac, eps, screen, rect_s)
+    gauss, offsets, pos = build_tile_lists(order, rect, gx, gy, rect_off, live, rect_s)
     longest = int(np.max(np.diff(offsets))) if offsets.size > 1 else 0
     if longest > rk.MAX_LIST_LENGTH[np.dtype(dt)]:       # the kernels count slots in dt
         input_error("gaussians", f"at most {rk.MAX_LIST_LENGTH[np.dtype(dt)]} Gaussians on one "

@@ -174,9 +174,26 @@ _LIVE_PAD = 1e-3
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def tile_alive(lo, hi, order, rect, rect_off, means2d, conics, opac, eps, live):
-    """For the Gaussians order[lo:hi]: live[rect_off[k] + (ty - y0) (x1 - x0) + (tx - x0)] for
-    each tile (tx, ty) of the rectangle of Gaussian order[k].
+def screen_inputs(lo, hi, order, means2d, conics, opac, out):
+    """out[k] = (mx, my, A, B, C, o) of Gaussian order[k] in float64, k = lo..hi: what
+    :func:`tile_alive` reads, gathered in depth order by a loop that does nothing else (its
+    cache misses overlap, where inside tile_alive's arithmetic they stall it)."""
+    for k in range(lo, hi):
+        g = order[k]
+        out[k, 0] = np.float64(means2d[g, 0])
+        out[k, 1] = np.float64(means2d[g, 1])
+        out[k, 2] = np.float64(conics[g, 0])
+        out[k, 3] = np.float64(conics[g, 1])
+        out[k, 4] = np.float64(conics[g, 2])
+        out[k, 5] = np.float64(opac[g])
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def tile_alive(lo, hi, rect_s, rect_off, scr, eps, live):
+    """For the Gaussians k = lo..hi of the depth order: live[rect_off[k] + (ty - y0) (x1 - x0) +
+    (tx - x0)] for each tile (tx, ty) of their rectangle rect_s[k] (:func:`rects_in_order`);
+    scr (V, 6) float64: their mean, conic and opacity in that order (:func:`screen_inputs`), so
+    that this loop, long per Gaussian, reads its inputs in sequence (docs/fast.md, "Speed").
 
     Conservative: a tile is live unless no pixel centre of it can lie inside the screen's
     ellipse d^T conic d <= q (module docstring, Screen), with q taken at its largest over the
@@ -190,13 +207,10 @@ def tile_alive(lo, hi, order, rect, rect_off, means2d, conics, opac, eps, live):
     non-finite conics are live everywhere (the screen's _ALL_ROWS)."""
     T = TILE_SIZE
     for k in range(lo, hi):
-        g = order[k]
-        rx0, rx1, ry0, ry1 = rect[g, 0], rect[g, 1], rect[g, 2], rect[g, 3]
+        rx0, rx1, ry0, ry1 = rect_s[k, 0], rect_s[k, 1], rect_s[k, 2], rect_s[k, 3]
         base = rect_off[k]
         w = rx1 - rx0
-        mx, my = np.float64(means2d[g, 0]), np.float64(means2d[g, 1])
-        A, B, C = np.float64(conics[g, 0]), np.float64(conics[g, 1]), np.float64(conics[g, 2])
-        o = np.float64(opac[g])
+        mx, my, A, B, C, o = scr[k, 0], scr[k, 1], scr[k, 2], scr[k, 3], scr[k, 4], scr[k, 5]
         det = A * C - B * B
         # q at its largest over the rectangle's pixel centres (the screen's q per tile is <= this)
         dxm = max(abs(mx - (rx0 * T + 0.5)), abs(mx - (rx1 * T - 0.5)))
