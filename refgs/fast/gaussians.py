@@ -14,7 +14,10 @@ names ``K_*`` below.  Where the reference itself mixes in float64 (gsplat's radi
 tile rectangles, refgs.projection.tile_rectangles), so do these kernels.
 
 The backward *recomputes* the forward of each Gaussian from its raw parameters instead of storing
-(N,3,3) intermediates: a few dozen flops per Gaussian, cheaper than the memory traffic.
+(N,3,3) intermediates: a few dozen flops per Gaussian, cheaper than the memory traffic.  It runs
+per block of refgs.fast.lanes.BLOCK Gaussians: the opacity and SH parts one Gaussian at a time,
+the camera frame, projection, covariance and quaternion parts for the whole block in SIMD lanes
+(refgs.fast.lanes.projection_backward_lane, the same expressions, the same bits).
 """
 from __future__ import annotations
 
@@ -23,6 +26,7 @@ import math
 import numpy as np
 from numba import njit
 
+from . import lanes
 from .kernels import G_A, G_B, G_BL, G_C, G_G, G_MX, G_MY, G_O, G_R, G_Z
 from ..constants import (ALPHA_MIN, SH_C0, SH_C1, SH_C2, SH_C3, SH_COLOR_OFFSET, TILE_SIZE,
                          Profile)
@@ -429,150 +433,80 @@ def gaussians_backward(lo, hi, means, log_scales, quats, logits, oscale, sh, w2c
     """
     deg = flags[F_DEGREE]
     nb = (deg + 1) * (deg + 1)
-    zero, one, two, half = cst[K_ZERO], cst[K_ONE], cst[K_TWO], cst[K_HALF]
-    eps = cst[K_EPS2D]
-    fx, fy = cst[K_FX], cst[K_FY]
+    zero, one = cst[K_ZERO], cst[K_ONE]
+    # the lanes' constants and camera (refgs.fast.lanes.projection_backward_lane)
+    cs = (zero, one, cst[K_TWO], cst[K_HALF], cst[K_EPS2D], cst[K_FX], cst[K_FY], cst[K_LNX],
+          cst[K_LPX], cst[K_LNY], cst[K_LPY])
+    w2 = (w2c[0, 0], w2c[0, 1], w2c[0, 2], w2c[0, 3], w2c[1, 0], w2c[1, 1], w2c[1, 2],
+          w2c[1, 3], w2c[2, 0], w2c[2, 1], w2c[2, 2], w2c[2, 3])
+    aa = flags[F_ANTIALIASED] != 0
     # scratch, allocated once per call (not per Gaussian)
     basis = np.empty(16, means.dtype)
     vb = np.empty(16, means.dtype)
-    R = np.empty((3, 3), means.dtype)
-    M = np.empty((3, 3), means.dtype)
-    Cc = np.empty((3, 3), means.dtype)
-    S = np.empty(3, means.dtype)
-    t = np.empty(3, means.dtype)
-    sig = np.empty((3, 3), means.dtype)
-    tmp = np.empty((3, 3), means.dtype)
-    Jm = np.zeros((2, 3), means.dtype)
-    VJ = np.empty((2, 3), means.dtype)
-    vCc = np.empty((3, 3), means.dtype)
-    vJ = np.empty((2, 3), means.dtype)
-    vS = np.empty((3, 3), means.dtype)
-    vM = np.empty((3, 3), means.dtype)
-    vR = np.empty((3, 3), means.dtype)
-    for g in range(lo, hi):
-        for k in range(nb if visible[g] else 0, out_sh.shape[1]):    # the rest written below
-            for ch in range(3):
-                out_sh[g, k, ch] = zero
-        if not visible[g]:
-            for j in range(3):
-                out_means[g, j] = zero
-                out_log_scales[g, j] = zero
+    L = lanes.BLOCK
+    buf = np.zeros(lanes.N_IN * L, means.dtype)
+    out = np.zeros(lanes.N_OUT * L, means.dtype)
+    for g0 in range(lo, hi, L):
+        nl = min(L, hi - g0)
+        # per Gaussian: opacity, SH (SH-04) and the lanes' inputs (a lane of a culled Gaussian
+        # computes on stale values; its outputs are zeros below)
+        for l in range(nl):
+            g = g0 + l
+            for k in range(nb if visible[g] else 0, out_sh.shape[1]):    # the rest written below
+                for ch in range(3):
+                    out_sh[g, k, ch] = zero
+            if not visible[g]:
+                out_logits[g] = zero
+                continue
+            # opacity = sigmoid(logit) * scale * comp
+            os_, sc, cp = o_sig[g], oscale[g], comp[g]
+            vo = per_g[g, G_O]
+            v_osig = vo * sc * cp
+            out_logits[g] = v_osig * os_ * (one - os_)
+            # SH-04: colour -> sh coefficients and the view direction
+            dx = means[g, 0] - campos[0]
+            dy = means[g, 1] - campos[1]
+            dz = means[g, 2] - campos[2]
+            dist = math.sqrt(dx * dx + dy * dy + dz * dz)
+            if not dist > zero:
+                dist = one
+            x, y, z = dx / dist, dy / dist, dz / dist
+            _sh_basis(x, y, z, deg, basis, cst)
+            gc0 = zero if clamped[g, 0] else per_g[g, G_R]
+            gc1 = zero if clamped[g, 1] else per_g[g, G_G]
+            gc2 = zero if clamped[g, 2] else per_g[g, G_BL]
+            for k in range(nb):
+                out_sh[g, k, 0] = basis[k] * gc0
+                out_sh[g, k, 1] = basis[k] * gc1
+                out_sh[g, k, 2] = basis[k] * gc2
+                vb[k] = sh[g, k, 0] * gc0 + sh[g, k, 1] * gc1 + sh[g, k, 2] * gc2
+            vdx, vdy, vdz = _sh_dir_vjp(x, y, z, deg, vb, cst)
+            dotv = x * vdx + y * vdy + z * vdz
+            buf[lanes.IN_VSX * L + l] = (vdx - x * dotv) / dist
+            buf[lanes.IN_VSY * L + l] = (vdy - y * dotv) / dist
+            buf[lanes.IN_VSZ * L + l] = (vdz - z * dotv) / dist
+            buf[lanes.IN_VCOMP * L + l] = vo * os_ * sc
+            buf[lanes.IN_CP * L + l] = cp
             for j in range(4):
-                out_quats[g, j] = zero
-            out_logits[g] = zero
-            continue
-        # opacity = sigmoid(logit) * scale * comp
-        os_, sc, cp = o_sig[g], oscale[g], comp[g]
-        vo = per_g[g, G_O]
-        v_osig = vo * sc * cp
-        v_comp = vo * os_ * sc
-        out_logits[g] = v_osig * os_ * (one - os_)
-        # SH-04: colour -> sh coefficients and the view direction
-        dx = means[g, 0] - campos[0]
-        dy = means[g, 1] - campos[1]
-        dz = means[g, 2] - campos[2]
-        dist = math.sqrt(dx * dx + dy * dy + dz * dz)
-        if not dist > zero:
-            dist = one
-        x, y, z = dx / dist, dy / dist, dz / dist
-        _sh_basis(x, y, z, deg, basis, cst)
-        gc0 = zero if clamped[g, 0] else per_g[g, G_R]
-        gc1 = zero if clamped[g, 1] else per_g[g, G_G]
-        gc2 = zero if clamped[g, 2] else per_g[g, G_BL]
-        for k in range(nb):
-            out_sh[g, k, 0] = basis[k] * gc0
-            out_sh[g, k, 1] = basis[k] * gc1
-            out_sh[g, k, 2] = basis[k] * gc2
-            vb[k] = sh[g, k, 0] * gc0 + sh[g, k, 1] * gc1 + sh[g, k, 2] * gc2
-        vdx, vdy, vdz = _sh_dir_vjp(x, y, z, deg, vb, cst)
-        dotv = x * vdx + y * vdy + z * vdz
-        vsx = (vdx - x * dotv) / dist
-        vsy = (vdy - y * dotv) / dist
-        vsz = (vdz - z * dotv) / dist
-        # PRJ-07: camera frame and Jacobian, recomputed
-        qn = _camera_state(g, means, log_scales, quats, w2c, cst, R, S, M, Cc, t, sig, tmp)
-        tz = t[2]
-        j00, j02, j11, j12, u, v, clx, cly = _jacobian(t, tz, cst)
-        # conic -> dilated 2D covariance: Q = Sigma2D^-1, dQ = -Q dSigma Q with b counted once
-        # (no division by det^2, which overflows for huge splats), as refgs.projection
-        A, B, C = conics[g, 0], conics[g, 1], conics[g, 2]
-        vA, vB, vC = per_g[g, G_A], per_g[g, G_B], per_g[g, G_C]
-        va = -(A * A * vA + A * B * vB + B * B * vC)
-        vbb = -(two * A * B * vA + (A * C + B * B) * vB + two * B * C * vC)
-        vc = -(B * B * vA + B * C * vB + C * C * vC)
-        if flags[F_ANTIALIASED] and cp > zero:                # PRJ-08, rho2 = det0 / det
-            v_rho2 = v_comp * half / cp
-            rho2 = cp * cp
-            det_q = A * C - B * B
-            va += v_rho2 * ((one - rho2) * A - eps * det_q)
-            vc += v_rho2 * ((one - rho2) * C - eps * det_q)
-            vbb += v_rho2 * two * (one - rho2) * B
-        # V = [[va, vb/2], [vb/2, vc]]; J = [[j00, 0, j02], [0, j11, j12]] (Jm[0,1] = Jm[1,0] = 0)
-        V01 = half * vbb
-        Jm[0, 0], Jm[0, 2], Jm[1, 1], Jm[1, 2] = j00, j02, j11, j12
-        for j in range(3):
-            VJ[0, j] = va * Jm[0, j] + V01 * Jm[1, j]
-            VJ[1, j] = V01 * Jm[0, j] + vc * Jm[1, j]
-        for i in range(3):
+                buf[(lanes.IN_Q0 + j) * L + l] = quats[g, j]
             for j in range(3):
-                vCc[i, j] = Jm[0, i] * VJ[0, j] + Jm[1, i] * VJ[1, j]
-        for i in range(2):
+                buf[(lanes.IN_M0 + j) * L + l] = means[g, j]
+                buf[(lanes.IN_S0 + j) * L + l] = math.exp(log_scales[g, j])     # COV-01
+                buf[(lanes.IN_CA + j) * L + l] = conics[g, j]
+            buf[lanes.IN_VA * L + l] = per_g[g, G_A]
+            buf[lanes.IN_VB * L + l] = per_g[g, G_B]
+            buf[lanes.IN_VC * L + l] = per_g[g, G_C]
+            buf[lanes.IN_VM0 * L + l] = per_g[g, G_MX]
+            buf[lanes.IN_VM1 * L + l] = per_g[g, G_MY]
+            buf[lanes.IN_VZ * L + l] = per_g[g, G_Z]
+        # PRJ-07, PRJ-08, COV-02: the block's Gaussians in SIMD lanes
+        for l in range(nl):
+            lanes.projection_backward_lane(buf, out, l, w2, cs, aa)
+        for l in range(nl):
+            g = g0 + l
+            vis = visible[g]
             for j in range(3):
-                vJ[i, j] = two * (VJ[i, 0] * Cc[0, j] + VJ[i, 1] * Cc[1, j] + VJ[i, 2] * Cc[2, j])
-        # v_Sigma = Rw^T vCc Rw
-        for i in range(3):
-            for j in range(3):
-                tmp[i, j] = w2c[0, i] * vCc[0, j] + w2c[1, i] * vCc[1, j] + w2c[2, i] * vCc[2, j]
-        for i in range(3):
-            for j in range(3):
-                vS[i, j] = tmp[i, 0] * w2c[0, j] + tmp[i, 1] * w2c[1, j] + tmp[i, 2] * w2c[2, j]
-        # J entries -> t (exact depth gradient under the clamp, PRJ-07)
-        tz2 = tz * tz
-        v_tz = -fx / tz2 * vJ[0, 0] - fy / tz2 * vJ[1, 1]
-        v_tz += fx * u / tz2 * vJ[0, 2] + fy * v / tz2 * vJ[1, 2]
-        v_u = -fx / tz * vJ[0, 2]
-        v_v = -fy / tz * vJ[1, 2]
-        v_tx = zero
-        v_ty = zero
-        if not clx:
-            v_tx += v_u / tz
-            v_tz += -v_u * t[0] / tz2
-        if not cly:
-            v_ty += v_v / tz
-            v_tz += -v_v * t[1] / tz2
-        vm0, vm1 = per_g[g, G_MX], per_g[g, G_MY]
-        v_tx += fx / tz * vm0
-        v_ty += fy / tz * vm1
-        v_tz += -fx * t[0] / tz2 * vm0 - fy * t[1] / tz2 * vm1
-        v_tz += per_g[g, G_Z]
-        # t = Rw mean + tw, plus the view direction's part (each output stored once: an output
-        # array of a lower precision then rounds once, as a cast of the result would)
-        out_means[g, 0] = (v_tx * w2c[0, 0] + v_ty * w2c[1, 0] + v_tz * w2c[2, 0]) + vsx
-        out_means[g, 1] = (v_tx * w2c[0, 1] + v_ty * w2c[1, 1] + v_tz * w2c[2, 1]) + vsy
-        out_means[g, 2] = (v_tx * w2c[0, 2] + v_ty * w2c[1, 2] + v_tz * w2c[2, 2]) + vsz
-        # COV-02: Sigma = M M^T, M = R diag(s)
-        for i in range(3):
-            for j in range(3):
-                vM[i, j] = ((vS[i, 0] + vS[0, i]) * M[0, j] + (vS[i, 1] + vS[1, i]) * M[1, j]
-                            + (vS[i, 2] + vS[2, i]) * M[2, j])
-        for i in range(3):
-            for j in range(3):
-                vR[i, j] = vM[i, j] * S[j]
-        for j in range(3):
-            out_log_scales[g, j] = (vM[0, j] * R[0, j] + vM[1, j] * R[1, j] + vM[2, j] * R[2, j]) * S[j]
-        w, x, y, z, _ = _unit_quat(quats[g], cst)
-        G = vR
-        vw = two * (-z * G[0, 1] + y * G[0, 2] + z * G[1, 0] - x * G[1, 2] - y * G[2, 0] + x * G[2, 1])
-        vx = two * (y * G[0, 1] + z * G[0, 2] + y * G[1, 0] - two * x * G[1, 1]
-                    - w * G[1, 2] + z * G[2, 0] + w * G[2, 1] - two * x * G[2, 2])
-        vy = two * (-two * y * G[0, 0] + x * G[0, 1] + w * G[0, 2] + x * G[1, 0]
-                    + z * G[1, 2] - w * G[2, 0] + z * G[2, 1] - two * y * G[2, 2])
-        vz = two * (-two * z * G[0, 0] - w * G[0, 1] + x * G[0, 2] + w * G[1, 0]
-                    - two * z * G[1, 1] + y * G[1, 2] + x * G[2, 0] + y * G[2, 1])
-        dot = w * vw + x * vx + y * vy + z * vz                # (I - u u^T) v / |q| (CNV-05)
-        out_quats[g, 0] = (vw - w * dot) / qn
-        out_quats[g, 1] = (vx - x * dot) / qn
-        out_quats[g, 2] = (vy - y * dot) / qn
-        out_quats[g, 3] = (vz - z * dot) / qn
-
-
+                out_means[g, j] = out[(lanes.OUT_M0 + j) * L + l] if vis else zero
+                out_log_scales[g, j] = out[(lanes.OUT_LS0 + j) * L + l] if vis else zero
+            for j in range(4):
+                out_quats[g, j] = out[(lanes.OUT_Q0 + j) * L + l] if vis else zero
