@@ -13,11 +13,12 @@ array ``cst`` (built by :func:`constants_array` in the Gaussians' dtype) and is 
 names ``K_*`` below.  Where the reference itself mixes in float64 (gsplat's radius extend and the
 tile rectangles, refgs.projection.tile_rectangles), so do these kernels.
 
-The backward *recomputes* the forward of each Gaussian from its raw parameters instead of storing
-(N,3,3) intermediates: a few dozen flops per Gaussian, cheaper than the memory traffic.  It runs
-per block of refgs.fast.lanes.BLOCK Gaussians: the opacity and SH parts one Gaussian at a time,
-the camera frame, projection, covariance and quaternion parts for the whole block in SIMD lanes
-(refgs.fast.lanes.projection_backward_lane, the same expressions, the same bits).
+Both kernels run per block of refgs.fast.lanes.BLOCK Gaussians: what calls libm (exp, log) and
+the SH colour and its gradient one Gaussian at a time, the camera frame, projection, covariance,
+radius and tile rectangle -- and in the backward their gradients -- for the whole block in SIMD
+lanes (refgs.fast.lanes: straight-line code LLVM vectorises across Gaussians).  The backward
+*recomputes* the camera frame of each Gaussian from its raw parameters instead of storing (N,3,3)
+intermediates: a few dozen flops per Gaussian, cheaper than the memory traffic.
 """
 from __future__ import annotations
 
@@ -43,8 +44,7 @@ F_NEAR_INCLUSIVE, F_DET_NONPOSITIVE, F_EIG_RULE, F_OPACITY_CULL, F_OFFSCREEN_CUL
 F_INRIA_TILES, F_ANTIALIASED, F_DEGREE, F_WIDTH, F_HEIGHT = 5, 6, 7, 8, 9
 N_FLAGS = 10
 
-#: the tile edge and the int32 ceiling of radii (HARD-11), as float64 for the rectangle maths
-_TILE = float(TILE_SIZE)
+#: the int32 ceiling of radii (HARD-11), as float64
 _INT32_MAX = float(np.iinfo(np.int32).max)
 
 
@@ -83,32 +83,6 @@ def flags_array(profile: Profile, antialiased: bool, degree: int, width: int, he
 # ---------------------------------------------------------------------------------------------
 # shared per-Gaussian pieces (inlined into the parallel loops)
 # ---------------------------------------------------------------------------------------------
-
-@njit(cache=True, error_model="numpy")
-def _unit_quat(q, cst):
-    """(w, x, y, z) / |q| after division by max|q_k| (CNV-05) and |q| itself."""
-    one = cst[K_ONE]
-    m = max(max(abs(q[0]), abs(q[1])), max(abs(q[2]), abs(q[3])))
-    safe = m if m > cst[K_ZERO] else one
-    w, x, y, z = q[0] / safe, q[1] / safe, q[2] / safe, q[3] / safe
-    ns = math.sqrt(w * w + x * x + y * y + z * z)
-    return w / ns, x / ns, y / ns, z / ns, ns * safe
-
-
-@njit(cache=True, error_model="numpy")
-def _rotmat(w, x, y, z, R, cst):
-    """R (3,3) of a unit quaternion (CNV-04), written into R."""
-    one, two = cst[K_ONE], cst[K_TWO]
-    R[0, 0] = one - two * (y * y + z * z)
-    R[0, 1] = two * (x * y - w * z)
-    R[0, 2] = two * (x * z + w * y)
-    R[1, 0] = two * (x * y + w * z)
-    R[1, 1] = one - two * (x * x + z * z)
-    R[1, 2] = two * (y * z - w * x)
-    R[2, 0] = two * (x * z - w * y)
-    R[2, 1] = two * (y * z + w * x)
-    R[2, 2] = one - two * (x * x + y * y)
-
 
 @njit(cache=True, error_model="numpy")
 def _sh_basis(x, y, z, deg, b, cst):
@@ -199,86 +173,6 @@ def _sigmoid(x, cst):
     return e / (one + e)
 
 
-@njit(cache=True, error_model="numpy")
-def _camera_state(g, means, log_scales, quats, w2c, cst, R, S, M, Cc, t, sig, tmp):
-    """Covariance (COV-01) and camera-frame mean and covariance (PRJ-01) of Gaussian g.
-
-    Fills R (rotation), S (scales, 3), M = R diag(S), Cc = Rw Sigma Rw^T and t (sig, tmp: 3x3
-    scratch); returns |q|."""
-    w, x, y, z, qn = _unit_quat(quats[g], cst)
-    _rotmat(w, x, y, z, R, cst)
-    for j in range(3):
-        S[j] = math.exp(log_scales[g, j])
-    for i in range(3):
-        for j in range(3):
-            M[i, j] = R[i, j] * S[j]
-    # Sigma = M M^T, then Rw Sigma Rw^T via P = Rw M: Cc = P P^T
-    for i in range(3):
-        t[i] = w2c[i, 0] * means[g, 0] + w2c[i, 1] * means[g, 1] + w2c[i, 2] * means[g, 2] + w2c[i, 3]
-    for i in range(3):
-        for j in range(3):
-            sig[i, j] = M[i, 0] * M[j, 0] + M[i, 1] * M[j, 1] + M[i, 2] * M[j, 2]
-    for i in range(3):
-        for j in range(3):
-            tmp[i, j] = w2c[i, 0] * sig[0, j] + w2c[i, 1] * sig[1, j] + w2c[i, 2] * sig[2, j]
-    for i in range(3):
-        for j in range(3):
-            Cc[i, j] = tmp[i, 0] * w2c[j, 0] + tmp[i, 1] * w2c[j, 1] + tmp[i, 2] * w2c[j, 2]
-    return qn
-
-
-@njit(cache=True, error_model="numpy")
-def _jacobian(t, tz, cst):
-    """Clamped EWA Jacobian entries (PRJ-03): j00, j02, j11, j12, u, v, clamped_x, clamped_y."""
-    fx, fy = cst[K_FX], cst[K_FY]
-    u_raw = t[0] / tz
-    v_raw = t[1] / tz
-    u = min(max(u_raw, -cst[K_LNX]), cst[K_LPX])
-    v = min(max(v_raw, -cst[K_LNY]), cst[K_LPY])
-    cl_x = (u_raw < -cst[K_LNX]) or (u_raw > cst[K_LPX])
-    cl_y = (v_raw < -cst[K_LNY]) or (v_raw > cst[K_LPY])
-    return fx / tz, -fx * u / tz, fy / tz, -fy * v / tz, u, v, cl_x, cl_y
-
-
-@njit(cache=True, error_model="numpy")
-def _cov2d(Cc, j00, j02, j11, j12, cst):
-    """Undilated 2D covariance entries m00, m01 (symmetrised), m11 of J Cc J^T (PRJ-04)."""
-    r00 = j00 * Cc[0, 0] + j02 * Cc[2, 0]
-    r01 = j00 * Cc[0, 1] + j02 * Cc[2, 1]
-    r02 = j00 * Cc[0, 2] + j02 * Cc[2, 2]
-    r10 = j11 * Cc[1, 0] + j12 * Cc[2, 0]
-    r11 = j11 * Cc[1, 1] + j12 * Cc[2, 1]
-    r12 = j11 * Cc[1, 2] + j12 * Cc[2, 2]
-    m00 = r00 * j00 + r02 * j02
-    m01 = r01 * j11 + r02 * j12
-    m10 = r10 * j00 + r12 * j02
-    m11 = r11 * j11 + r12 * j12
-    return m00, cst[K_HALF] * (m01 + m10), m11
-
-
-@njit(cache=True, error_model="numpy")
-def _in_depth(tz, cst, flags):
-    """PRJ-02 near/far test."""
-    ok = (tz > cst[K_NEAR]) if flags[F_NEAR_INCLUSIVE] else (tz >= cst[K_NEAR])
-    return ok and tz <= cst[K_FAR]
-
-
-@njit(cache=True, error_model="numpy")
-def _clip_tile(x, hi):
-    """nan -> 0, +-inf clipped, then clip to [0, hi] (refgs.projection.tile_rectangles)."""
-    if x != x:
-        return 0
-    if x < 0.0:
-        return 0
-    if x > hi:
-        return hi
-    return int(x)
-
-
-# ---------------------------------------------------------------------------------------------
-# forward
-# ---------------------------------------------------------------------------------------------
-
 @njit(cache=True, nogil=True, error_model="numpy")
 def gaussians_forward(lo, hi, means, log_scales, quats, logits, oscale, sh, w2c, campos, cst,
                       sigma64, flags, means2d, depths, cov2d, conics, comp, o_sig, opac, colors,
@@ -297,121 +191,88 @@ def gaussians_forward(lo, hi, means, log_scales, quats, logits, oscale, sh, w2c,
     gx = (W + TILE_SIZE - 1) // TILE_SIZE
     gy = (H + TILE_SIZE - 1) // TILE_SIZE
     zero, one = cst[K_ZERO], cst[K_ONE]
-    eps = cst[K_EPS2D]
+    # the lanes' constants and camera (refgs.fast.lanes)
+    cs = (zero, one, cst[K_TWO], cst[K_HALF], cst[K_EPS2D], cst[K_FX], cst[K_FY], cst[K_CX],
+          cst[K_CY], cst[K_LNX], cst[K_LPX], cst[K_LNY], cst[K_LPY], cst[K_NEAR], cst[K_FAR])
+    fl = (flags[F_NEAR_INCLUSIVE] != 0, flags[F_DET_NONPOSITIVE] != 0, flags[F_ANTIALIASED] != 0)
+    cs_ext = (zero, cst[K_HALF], cst[K_EIG_FLOOR], cst[K_SIGMA], cst[K_ALPHA_MIN])
+    fl_ext = (flags[F_EIG_RULE] != 0, flags[F_OPACITY_CULL] != 0, flags[F_INRIA_TILES] != 0,
+              flags[F_OFFSCREEN_CULL] != 0)
+    opacity_extent = flags[F_OPACITY_CULL] != 0 and flags[F_EIG_RULE] == 0
+    dims = (W, H, gx, gy)
+    w2 = (w2c[0, 0], w2c[0, 1], w2c[0, 2], w2c[0, 3], w2c[1, 0], w2c[1, 1], w2c[1, 2],
+          w2c[1, 3], w2c[2, 0], w2c[2, 1], w2c[2, 2], w2c[2, 3])
     # scratch, allocated once per call (not per Gaussian)
-    R = np.empty((3, 3), means.dtype)
-    M = np.empty((3, 3), means.dtype)
-    Cc = np.empty((3, 3), means.dtype)
-    S = np.empty(3, means.dtype)
-    t = np.empty(3, means.dtype)
     basis = np.empty(16, means.dtype)
-    sig = np.empty((3, 3), means.dtype)
-    tmp = np.empty((3, 3), means.dtype)
-    for g in range(lo, hi):
-        _camera_state(g, means, log_scales, quats, w2c, cst, R, S, M, Cc, t, sig, tmp)
-        tz = t[2]
-        in_depth = _in_depth(tz, cst, flags)
-        tzs = tz if in_depth else one
-        depths[g] = tz
-        mx = cst[K_FX] * t[0] / tzs + cst[K_CX]                  # CNV-08
-        my = cst[K_FY] * t[1] / tzs + cst[K_CY]
-        means2d[g, 0] = mx
-        means2d[g, 1] = my
-        j00, j02, j11, j12, u, v, clx, cly = _jacobian(t, tzs, cst)
-        m00, m01, m11 = _cov2d(Cc, j00, j02, j11, j12, cst)
-        a = m00 + eps                                             # PRJ-04 dilation
-        b = m01
-        c = m11 + eps
-        cov2d[g, 0], cov2d[g, 1], cov2d[g, 2] = a, b, c
-        # conic = inverse of [[a, b], [b, c]] on the entries divided by m = max(|a|, |c|), so that
-        # nothing overflows for huge splats (HARD-11), as refgs.projection
-        m = max(abs(a), abs(c))
-        if not m > zero:
-            m = one
-        a1, b1, c1 = a / m, b / m, c / m
-        det1 = a1 * c1 - b1 * b1                          # det / m^2
-        det_ok = (det1 > zero) if flags[F_DET_NONPOSITIVE] else (det1 != zero)
-        det1s = det1 if det_ok else one
-        md = m * det1s
-        conics[g, 0] = c1 / md
-        conics[g, 1] = -b1 / md
-        conics[g, 2] = a1 / md
-        if flags[F_ANTIALIASED]:                                  # PRJ-08
-            e1 = eps / m
-            det0_1 = (a1 - e1) * (c1 - e1) - b1 * b1
-            cp = math.sqrt(max(zero, det0_1 / det1s))
-        else:
-            cp = one
-        comp[g] = cp
-        os_ = _sigmoid(logits[g], cst)
-        o_sig[g] = os_
-        o_eff = os_ * oscale[g] * cp
-        opac[g] = o_eff
-        vis = in_depth and det_ok
-        # PRJ-05 radius
-        if flags[F_EIG_RULE]:
-            mid1 = cst[K_HALF] * (a1 + c1)                       # lambda_max in units of m
-            root = m * math.sqrt(max(mid1 * mid1 - det1, zero))
-            lam1 = m * mid1 + max(math.sqrt(cst[K_EIG_FLOOR]), root)
-            r = np.ceil(cst[K_SIGMA] * math.sqrt(max(lam1, zero)))
-            rx = np.float64(r)
-            ry = rx
-        else:
-            extend = sigma64
-            if flags[F_OPACITY_CULL]:
-                vis = vis and o_eff >= cst[K_ALPHA_MIN]
-                ext_o = math.sqrt(cst[K_TWO] * math.log(max(o_eff, cst[K_ALPHA_MIN]) / cst[K_ALPHA_MIN]))
-                extend = min(extend, np.float64(ext_o))
-            rx = np.ceil(extend * np.float64(math.sqrt(max(a, zero))))
-            ry = np.ceil(extend * np.float64(math.sqrt(max(c, zero))))
-            vis = vis and not (rx <= 0.0 and ry <= 0.0)
-        if not vis:
-            rx = 0.0
-            ry = 0.0
-        # RAS-01 / PRF-08 tile rectangle, in float64
-        fmx, fmy = np.float64(mx), np.float64(my)
-        if flags[F_INRIA_TILES]:
-            px, py = fmx - 0.5, fmy - 0.5
-            x0 = np.trunc((px - rx) / _TILE)
-            x1 = np.trunc((px + rx + _TILE - 1.0) / _TILE)
-            y0 = np.trunc((py - ry) / _TILE)
-            y1 = np.trunc((py + ry + _TILE - 1.0) / _TILE)
-        else:
-            x0 = np.floor(fmx / _TILE - rx / _TILE)
-            x1 = np.ceil(fmx / _TILE + rx / _TILE)
-            y0 = np.floor(fmy / _TILE - ry / _TILE)
-            y1 = np.ceil(fmy / _TILE + ry / _TILE)
-        ix0, ix1 = _clip_tile(x0, gx), _clip_tile(x1, gx)
-        iy0, iy1 = _clip_tile(y0, gy), _clip_tile(y1, gy)
-        if flags[F_OFFSCREEN_CULL]:
-            vis = vis and not (fmx + rx <= 0.0 or fmx - rx >= W or fmy + ry <= 0.0 or fmy - ry >= H)
-        vis = vis and ix1 > ix0 and iy1 > iy0
-        visible[g] = vis
-        if vis:
-            radii[g, 0] = np.int32(min(rx, _INT32_MAX))
-            radii[g, 1] = np.int32(min(ry, _INT32_MAX))
-            rect[g, 0], rect[g, 1], rect[g, 2], rect[g, 3] = ix0, ix1, iy0, iy1
-        else:
-            radii[g, 0] = 0
-            radii[g, 1] = 0
-            rect[g, 0], rect[g, 1], rect[g, 2], rect[g, 3] = 0, 0, 0, 0
-        # SH-01..SH-03 colour seen from campos = -Rw^T tw
-        dx = means[g, 0] - campos[0]
-        dy = means[g, 1] - campos[1]
-        dz = means[g, 2] - campos[2]
-        dist = math.sqrt(dx * dx + dy * dy + dz * dz)
-        if not dist > zero:
-            dist = one
-        _sh_basis(dx / dist, dy / dist, dz / dist, deg, basis, cst)
-        nb = (deg + 1) * (deg + 1)
-        for ch in range(3):
-            acc = zero
-            for k in range(nb):
-                acc += basis[k] * sh[g, k, ch]
-            rgb = acc + cst[K_COLOR_OFFSET]
-            cl = rgb < zero
-            clamped[g, ch] = cl
-            colors[g, ch] = zero if cl else rgb
+    L = lanes.BLOCK
+    buf = np.zeros(lanes.N_FIN * L, means.dtype)
+    out = np.zeros(lanes.N_FOUT * L, means.dtype)
+    r64 = np.zeros(lanes.N_R64 * L, np.float64)
+    ri = np.zeros(lanes.N_RI * L, np.int64)
+    for g0 in range(lo, hi, L):
+        nl = min(L, hi - g0)
+        # per Gaussian: the calls (exp) and the SH colour (SH-01..SH-03) seen from campos =
+        # -Rw^T tw; the lanes' inputs staged
+        for l in range(nl):
+            g = g0 + l
+            for j in range(4):
+                buf[(lanes.FIN_Q0 + j) * L + l] = quats[g, j]
+            for j in range(3):
+                buf[(lanes.FIN_M0 + j) * L + l] = means[g, j]
+                buf[(lanes.FIN_S0 + j) * L + l] = math.exp(log_scales[g, j])     # COV-01
+            os_ = _sigmoid(logits[g], cst)
+            o_sig[g] = os_
+            buf[lanes.FIN_OSIG * L + l] = os_
+            buf[lanes.FIN_OSCALE * L + l] = oscale[g]
+            dx = means[g, 0] - campos[0]
+            dy = means[g, 1] - campos[1]
+            dz = means[g, 2] - campos[2]
+            dist = math.sqrt(dx * dx + dy * dy + dz * dz)
+            if not dist > zero:
+                dist = one
+            _sh_basis(dx / dist, dy / dist, dz / dist, deg, basis, cst)
+            nb = (deg + 1) * (deg + 1)
+            for ch in range(3):
+                acc = zero
+                for k in range(nb):
+                    acc += basis[k] * sh[g, k, ch]
+                rgb = acc + cst[K_COLOR_OFFSET]
+                cl = rgb < zero
+                clamped[g, ch] = cl
+                colors[g, ch] = zero if cl else rgb
+        # covariance, projection, culls, conic, compensation (PRJ-01..PRJ-04, PRJ-08): lanes
+        for l in range(nl):
+            lanes.projection_forward_lane(buf, out, l, w2, cs, fl)
+        if opacity_extent:                   # gsplat's opacity-aware extent (PRJ-05): libm log
+            for l in range(nl):
+                o_eff = out[lanes.FOUT_O * L + l]
+                out[lanes.FOUT_EXT * L + l] = math.sqrt(cst[K_TWO] * math.log(
+                    max(o_eff, cst[K_ALPHA_MIN]) / cst[K_ALPHA_MIN]))
+        # radius (PRJ-05), visibility, tile rectangle (RAS-01, PRF-08): lanes
+        for l in range(nl):
+            lanes.extent_lane(out, r64, ri, l, cs_ext, sigma64, fl_ext, dims)
+        for l in range(nl):
+            g = g0 + l
+            depths[g] = out[lanes.FOUT_Z * L + l]
+            means2d[g, 0] = out[lanes.FOUT_MX * L + l]
+            means2d[g, 1] = out[lanes.FOUT_MY * L + l]
+            for j in range(3):
+                cov2d[g, j] = out[(lanes.FOUT_A + j) * L + l]
+                conics[g, j] = out[(lanes.FOUT_K0 + j) * L + l]
+            comp[g] = out[lanes.FOUT_CP * L + l]
+            opac[g] = out[lanes.FOUT_O * L + l]
+            vis = ri[lanes.RI_VIS * L + l] != 0
+            visible[g] = vis
+            if vis:
+                radii[g, 0] = np.int32(min(r64[lanes.R64_X * L + l], _INT32_MAX))
+                radii[g, 1] = np.int32(min(r64[lanes.R64_Y * L + l], _INT32_MAX))
+                for j in range(4):
+                    rect[g, j] = ri[(lanes.RI_X0 + j) * L + l]
+            else:
+                radii[g, 0] = 0
+                radii[g, 1] = 0
+                for j in range(4):
+                    rect[g, j] = 0
 
 
 # ---------------------------------------------------------------------------------------------

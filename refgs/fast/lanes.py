@@ -11,16 +11,20 @@ of two computed values, no branch with arithmetic in it, no call: the min/max bu
 spelled as selects), and LLVM vectorises it across Gaussians (16 float32 lanes in a zmm register
 on AVX-512 machines, 8 in ymm elsewhere).
 
-Every expression is the per-Gaussian code's, in its order, in the Gaussians' dtype; both arms of
-a choice are computed and one is selected, so the result is the same bits as the scalar code's
-(tests/test_fast.py checks the gradients' bytes against it).  Calls the vectoriser cannot take
-(exp and log from libm) stay in the caller's per-Gaussian loop, which stages their results.
+Every value is computed in the Gaussians' dtype (float64 where the spec's rectangle maths is),
+each expression in a fixed operation order (a change of order changes refgs.fast's bits); both
+arms of a choice are computed and one is selected, which gives the value the branch would.  Calls
+the vectoriser cannot take (exp and log from libm) stay in the caller's per-Gaussian loop, which
+stages their results.
 """
 from __future__ import annotations
 
 import math
 
+import numpy as np
 from numba import njit
+
+from ..constants import TILE_SIZE
 
 #: Gaussians per block: the lane loop's trip count (a multiple of the widest vector, 16 float32
 #: lanes, so that only a range's last block runs a remainder); the scratch arrays, 24 + 10 fields
@@ -36,6 +40,25 @@ N_IN = 24
 #: output fields: dL/d mean, d log-scale, d quaternion
 (OUT_M0, OUT_M1, OUT_M2, OUT_LS0, OUT_LS1, OUT_LS2, OUT_Q0, OUT_Q1, OUT_Q2, OUT_Q3) = range(10)
 N_OUT = 10
+#: the forward's input fields (:func:`projection_forward_lane`): raw quaternion, mean, scales
+#: (staged exp(log-scale)), sigmoid(logit) and the opacity scale
+(FIN_Q0, FIN_Q1, FIN_Q2, FIN_Q3, FIN_M0, FIN_M1, FIN_M2, FIN_S0, FIN_S1, FIN_S2, FIN_OSIG,
+ FIN_OSCALE) = range(12)
+N_FIN = 12
+#: the forward's per-lane results: depth, 2D mean, dilated 2D covariance, conic, compensation,
+#: opacity used, the scaled entries and determinant the radius needs, in-depth-and-det flag (0 /
+#: 1), and the caller's staged opacity extent (gsplat's opacity cull: sqrt(2 ln(o / (1/255))))
+(FOUT_Z, FOUT_MX, FOUT_MY, FOUT_A, FOUT_B, FOUT_C, FOUT_K0, FOUT_K1, FOUT_K2, FOUT_CP, FOUT_O,
+ FOUT_A1, FOUT_C1, FOUT_DET1, FOUT_M, FOUT_VIS, FOUT_EXT) = range(17)
+N_FOUT = 17
+#: the extent's results (:func:`extent_lane`): radii in float64 and the tile rectangle and
+#: visibility as integers
+(R64_X, R64_Y) = range(2)
+N_R64 = 2
+(RI_X0, RI_X1, RI_Y0, RI_Y1, RI_VIS) = range(5)
+N_RI = 5
+#: the tile edge as float64, for the rectangle maths
+_TILE = float(TILE_SIZE)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -47,20 +70,13 @@ def _clip(a, lo, hi):
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def projection_backward_lane(buf, out, l, w2, cs, aa):
-    """Lane l of a block: the camera frame (COV-01, PRJ-01) recomputed from the lane's inputs in
-    ``buf`` (IN_* fields), then the projection, covariance and quaternion backward (PRJ-07,
-    PRJ-08, COV-02, CNV-05) into ``out`` (OUT_* fields): dL/d mean (with the view direction's
-    part IN_VSX..), d log-scale, d quaternion.  w2 = the world-to-camera matrix's first three
-    rows (12 values, row-major), cs = (0, 1, 2, 1/2, eps2d, fx, fy, and the clamp limits of
-    PRJ-03: lim_x-, lim_x+, lim_y-, lim_y+) in the dtype, aa = antialiased (PRJ-08).  The expressions and their order are
-    those of the per-Gaussian code this replaces (refgs.fast.gaussians: _camera_state,
-    _jacobian and the backward's body), so the results are the same bits."""
-    L = BLOCK
-    (zero, one, two, half, eps, fx, fy, lnx, lpx, lny, lpy) = cs
+def camera_frame(q0, q1, q2, q3, m0, m1, m2, S0, S1, S2, w2, zero, one, two):
+    """Unit quaternion, rotation, M = R diag(S), camera-frame mean t and covariance
+    Cc = Rw M M^T Rw^T of one lane (COV-01, CNV-04, CNV-05, PRJ-01), as a tuple: (w, x, y, z,
+    |q|, R (9, row-major), M (9), t (3), Cc (9)).  q is divided by max |q_k| before it is
+    normalised (CNV-05); Sigma = M M^T, then Cc = Rw Sigma Rw^T as (Rw Sigma) Rw^T."""
     (w00, w01, w02, w03, w10, w11, w12, w13, w20, w21, w22, w23) = w2
-    q0, q1, q2, q3 = buf[IN_Q0 * L + l], buf[IN_Q1 * L + l], buf[IN_Q2 * L + l], buf[IN_Q3 * L + l]
-    # _unit_quat
+    # max |q_k| in selects (the builtin is a call where the vectoriser runs)
     a0, a1, a2, a3 = abs(q0), abs(q1), abs(q2), abs(q3)
     m01 = a1 if a1 > a0 else a0
     m23 = a3 if a3 > a2 else a2
@@ -70,7 +86,7 @@ def projection_backward_lane(buf, out, l, w2, cs, aa):
     ns = math.sqrt(w * w + x * x + y * y + z * z)
     w, x, y, z = w / ns, x / ns, y / ns, z / ns
     qn = ns * safe
-    # _rotmat
+    # CNV-04
     R00 = one - two * (y * y + z * z)
     R01 = two * (x * y - w * z)
     R02 = two * (x * z + w * y)
@@ -80,11 +96,9 @@ def projection_backward_lane(buf, out, l, w2, cs, aa):
     R20 = two * (x * z - w * y)
     R21 = two * (y * z + w * x)
     R22 = one - two * (x * x + y * y)
-    S0, S1, S2 = buf[IN_S0 * L + l], buf[IN_S1 * L + l], buf[IN_S2 * L + l]
     M00, M01, M02 = R00 * S0, R01 * S1, R02 * S2
     M10, M11, M12 = R10 * S0, R11 * S1, R12 * S2
     M20, M21, M22 = R20 * S0, R21 * S1, R22 * S2
-    m0, m1, m2 = buf[IN_M0 * L + l], buf[IN_M1 * L + l], buf[IN_M2 * L + l]
     t0 = w00 * m0 + w01 * m1 + w02 * m2 + w03
     t1 = w10 * m0 + w11 * m1 + w12 * m2 + w13
     t2 = w20 * m0 + w21 * m1 + w22 * m2 + w23
@@ -115,7 +129,31 @@ def projection_backward_lane(buf, out, l, w2, cs, aa):
     C20 = p20 * w00 + p21 * w01 + p22 * w02
     C21 = p20 * w10 + p21 * w11 + p22 * w12
     C22 = p20 * w20 + p21 * w21 + p22 * w22
-    # _jacobian(t, tz)
+    return (w, x, y, z, qn, R00, R01, R02, R10, R11, R12, R20, R21, R22,
+            M00, M01, M02, M10, M11, M12, M20, M21, M22, t0, t1, t2,
+            C00, C01, C02, C10, C11, C12, C20, C21, C22)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def projection_backward_lane(buf, out, l, w2, cs, aa):
+    """Lane l of a block: the camera frame (COV-01, PRJ-01) recomputed from the lane's inputs in
+    ``buf`` (IN_* fields), then the projection, covariance and quaternion backward (PRJ-07,
+    PRJ-08, COV-02, CNV-05) into ``out`` (OUT_* fields): dL/d mean (with the view direction's
+    part IN_VSX..), d log-scale, d quaternion.  w2 = the world-to-camera matrix's first three
+    rows (12 values, row-major), cs = (0, 1, 2, 1/2, eps2d, fx, fy, and the clamp limits of
+    PRJ-03: lim_x-, lim_x+, lim_y-, lim_y+) in the dtype, aa = antialiased (PRJ-08).  The
+    Jacobian takes the unclamped tz here (the forward's in-depth substitute does not enter the
+    backward), the conic's gradient is -Q dSigma Q with b counted once (refgs.projection)."""
+    L = BLOCK
+    (zero, one, two, half, eps, fx, fy, lnx, lpx, lny, lpy) = cs
+    (w00, w01, w02, w03, w10, w11, w12, w13, w20, w21, w22, w23) = w2
+    S0, S1, S2 = buf[IN_S0 * L + l], buf[IN_S1 * L + l], buf[IN_S2 * L + l]
+    (w, x, y, z, qn, R00, R01, R02, R10, R11, R12, R20, R21, R22,
+     M00, M01, M02, M10, M11, M12, M20, M21, M22, t0, t1, t2,
+     C00, C01, C02, C10, C11, C12, C20, C21, C22) = camera_frame(
+        buf[IN_Q0 * L + l], buf[IN_Q1 * L + l], buf[IN_Q2 * L + l], buf[IN_Q3 * L + l],
+        buf[IN_M0 * L + l], buf[IN_M1 * L + l], buf[IN_M2 * L + l], S0, S1, S2, w2, zero, one, two)
+    # PRJ-03: the clamped EWA Jacobian
     tz = t2
     u_raw = t0 / tz
     v_raw = t1 / tz
@@ -135,7 +173,7 @@ def projection_backward_lane(buf, out, l, w2, cs, aa):
     det_q = A * C - B * B
     anti = aa & (cp > zero)
     # both arms computed, then selected (a branch with arithmetic in an arm stops LLVM's
-    # vectoriser; the unused arm's value is discarded, so the bits are the scalar code's)
+    # vectoriser; the unused arm is discarded, which gives the value the branch would)
     va_a = va + v_rho2 * ((one - rho2) * A - eps * det_q)
     vc_a = vc + v_rho2 * ((one - rho2) * C - eps * det_q)
     vbb_a = vbb + v_rho2 * two * (one - rho2) * B
@@ -235,3 +273,152 @@ def projection_backward_lane(buf, out, l, w2, cs, aa):
     out[OUT_Q1 * L + l] = (vx - x * dot) / qn
     out[OUT_Q2 * L + l] = (vy - y * dot) / qn
     out[OUT_Q3 * L + l] = (vz - z * dot) / qn
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _max(a, b):
+    """max(a, b) as the builtin gives it (a unless b > a), as a select."""
+    return b if b > a else a
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _min(a, b):
+    """min(a, b) as the builtin gives it (a unless b < a), as a select."""
+    return b if b < a else a
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def projection_forward_lane(buf, out, l, w2, cs, fl):
+    """Lane l of a block: camera frame, depth, 2D mean, EWA covariance with dilation, conic,
+    antialiasing compensation and the opacity used (COV-01, PRJ-01..PRJ-04, PRJ-08), from the
+    FIN_* fields of ``buf`` into the FOUT_* fields of ``out``.  cs = (0, 1, 2, 1/2, eps2d, fx,
+    fy, cx, cy, lim_x-, lim_x+, lim_y-, lim_y+, near, far) in the dtype; fl = (near inclusive,
+    det <= 0 culled, antialiased) booleans.  The conic is inverted on the entries divided by
+    m = max(|a|, |c|), so that nothing overflows for huge splats (HARD-11), as refgs.projection."""
+    L = BLOCK
+    (zero, one, two, half, eps, fx, fy, cx, cy, lnx, lpx, lny, lpy, near, far) = cs
+    near_inclusive, det_nonpositive, antialiased = fl
+    (w, x, y, z, qn, R00, R01, R02, R10, R11, R12, R20, R21, R22,
+     M00, M01, M02, M10, M11, M12, M20, M21, M22, t0, t1, t2,
+     C00, C01, C02, C10, C11, C12, C20, C21, C22) = camera_frame(
+        buf[FIN_Q0 * L + l], buf[FIN_Q1 * L + l], buf[FIN_Q2 * L + l], buf[FIN_Q3 * L + l],
+        buf[FIN_M0 * L + l], buf[FIN_M1 * L + l], buf[FIN_M2 * L + l], buf[FIN_S0 * L + l],
+        buf[FIN_S1 * L + l], buf[FIN_S2 * L + l], w2, zero, one, two)
+    tz = t2
+    in_depth = ((tz > near) if near_inclusive else (tz >= near)) & (tz <= far)     # PRJ-02
+    tzs = tz if in_depth else one
+    out[FOUT_Z * L + l] = tz
+    mx = fx * t0 / tzs + cx                                                       # CNV-08
+    my = fy * t1 / tzs + cy
+    out[FOUT_MX * L + l] = mx
+    out[FOUT_MY * L + l] = my
+    # PRJ-03: the clamped EWA Jacobian
+    u = _min(_max(t0 / tzs, -lnx), lpx)
+    v = _min(_max(t1 / tzs, -lny), lpy)
+    j00, j02, j11, j12 = fx / tzs, -fx * u / tzs, fy / tzs, -fy * v / tzs
+    # PRJ-04: J Cc J^T, symmetrised, dilated
+    r00 = j00 * C00 + j02 * C20
+    r01 = j00 * C01 + j02 * C21
+    r02 = j00 * C02 + j02 * C22
+    r10 = j11 * C10 + j12 * C20
+    r11 = j11 * C11 + j12 * C21
+    r12 = j11 * C12 + j12 * C22
+    m00 = r00 * j00 + r02 * j02
+    m01 = r01 * j11 + r02 * j12
+    m10 = r10 * j00 + r12 * j02
+    m11 = r11 * j11 + r12 * j12
+    a = m00 + eps
+    b = half * (m01 + m10)
+    c = m11 + eps
+    out[FOUT_A * L + l] = a
+    out[FOUT_B * L + l] = b
+    out[FOUT_C * L + l] = c
+    m = _max(abs(a), abs(c))
+    m = m if m > zero else one
+    a1, b1, c1 = a / m, b / m, c / m
+    det1 = a1 * c1 - b1 * b1
+    det_ok = (det1 > zero) if det_nonpositive else (det1 != zero)
+    det1s = det1 if det_ok else one
+    md = m * det1s
+    out[FOUT_K0 * L + l] = c1 / md
+    out[FOUT_K1 * L + l] = -b1 / md
+    out[FOUT_K2 * L + l] = a1 / md
+    e1 = eps / m                                                                  # PRJ-08
+    det0_1 = (a1 - e1) * (c1 - e1) - b1 * b1
+    cp_aa = math.sqrt(_max(zero, det0_1 / det1s))
+    cp = cp_aa if antialiased else one
+    out[FOUT_CP * L + l] = cp
+    out[FOUT_O * L + l] = buf[FIN_OSIG * L + l] * buf[FIN_OSCALE * L + l] * cp
+    out[FOUT_A1 * L + l] = a1
+    out[FOUT_C1 * L + l] = c1
+    out[FOUT_DET1 * L + l] = det1
+    out[FOUT_M * L + l] = m
+    out[FOUT_VIS * L + l] = one if (in_depth & det_ok) else zero
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _clip_tile(x, hi):
+    """A tile bound as refgs.projection.tile_rectangles clips it, in selects: nan -> 0, then
+    clipped to [0, hi], as int64."""
+    xi = np.int64(_min(_max(x, 0.0), np.float64(hi)))       # finite after the clip (nan -> 0)
+    return 0 if x != x else xi
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def extent_lane(out, r64, ri, l, cs, sigma64, fl, dims):
+    """Lane l of a block: radius (PRJ-05), visibility and tile rectangle (RAS-01, PRF-08) from
+    :func:`projection_forward_lane`'s FOUT_* fields (FOUT_EXT staged by the caller when the
+    opacity cull is on) into r64 (R64_*) and ri (RI_*).  cs = (0, 1/2, eig floor, sigma, alpha
+    min) in the dtype; sigma64 the radius sigma in float64; fl = (eig rule, opacity cull, inria
+    tiles, offscreen cull); dims = (W, H, gx, gy).  Both radius rules are computed and one is
+    selected; gsplat's extend and the rectangle are float64 (refgs.projection.tile_rectangles)."""
+    L = BLOCK
+    zero, half, eig_floor, sigma, amin = cs
+    eig_rule, opacity_cull, inria_tiles, offscreen_cull = fl
+    W, H, gx, gy = dims
+    T = _TILE
+    a, c = out[FOUT_A * L + l], out[FOUT_C * L + l]
+    a1, c1 = out[FOUT_A1 * L + l], out[FOUT_C1 * L + l]
+    det1, m = out[FOUT_DET1 * L + l], out[FOUT_M * L + l]
+    o_eff = out[FOUT_O * L + l]
+    vis = out[FOUT_VIS * L + l] != zero
+    # eig rule (inria)
+    mid1 = half * (a1 + c1)
+    root = m * math.sqrt(_max(mid1 * mid1 - det1, zero))
+    lam1 = m * mid1 + _max(math.sqrt(eig_floor), root)
+    r_eig = np.float64(np.ceil(sigma * math.sqrt(_max(lam1, zero))))
+    # gsplat rule
+    ext = _min(sigma64, np.float64(out[FOUT_EXT * L + l])) if opacity_cull else sigma64
+    vis_g = (vis & (o_eff >= amin)) if opacity_cull else vis
+    rx_g = np.ceil(ext * np.float64(math.sqrt(_max(a, zero))))
+    ry_g = np.ceil(ext * np.float64(math.sqrt(_max(c, zero))))
+    vis_g = vis_g & (not ((rx_g <= 0.0) & (ry_g <= 0.0)))
+    rx = r_eig if eig_rule else rx_g
+    ry = r_eig if eig_rule else ry_g
+    vis = vis if eig_rule else vis_g
+    rx = rx if vis else 0.0
+    ry = ry if vis else 0.0
+    fmx, fmy = np.float64(out[FOUT_MX * L + l]), np.float64(out[FOUT_MY * L + l])
+    px, py = fmx - 0.5, fmy - 0.5
+    x0i = np.trunc((px - rx) / T)
+    x1i = np.trunc((px + rx + T - 1.0) / T)
+    y0i = np.trunc((py - ry) / T)
+    y1i = np.trunc((py + ry + T - 1.0) / T)
+    x0g = np.floor(fmx / T - rx / T)
+    x1g = np.ceil(fmx / T + rx / T)
+    y0g = np.floor(fmy / T - ry / T)
+    y1g = np.ceil(fmy / T + ry / T)
+    ix0 = _clip_tile(x0i if inria_tiles else x0g, gx)
+    ix1 = _clip_tile(x1i if inria_tiles else x1g, gx)
+    iy0 = _clip_tile(y0i if inria_tiles else y0g, gy)
+    iy1 = _clip_tile(y1i if inria_tiles else y1g, gy)
+    off = (fmx + rx <= 0.0) | (fmx - rx >= W) | (fmy + ry <= 0.0) | (fmy - ry >= H)
+    vis = vis & (not (offscreen_cull & off))
+    vis = vis & (ix1 > ix0) & (iy1 > iy0)
+    r64[R64_X * L + l] = rx
+    r64[R64_Y * L + l] = ry
+    ri[RI_X0 * L + l] = ix0
+    ri[RI_X1 * L + l] = ix1
+    ri[RI_Y0 * L + l] = iy0
+    ri[RI_Y1 * L + l] = iy1
+    ri[RI_VIS * L + l] = 1 if vis else 0
