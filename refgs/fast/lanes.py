@@ -1,15 +1,15 @@
 """Per-Gaussian arithmetic evaluated across Gaussians, in SIMD lanes (numba kernels' pieces).
 
-The per-Gaussian kernels of refgs.fast.gaussians handle one Gaussian at a time: scalar float code,
-with a few dozen intermediate values.  Where that arithmetic is straight-line, this module
-evaluates it for a *block* of BLOCK Gaussians at once: the caller stages each input of the block
-as a field of one scratch array (``buf[F * BLOCK + l]`` for Gaussian l of the block), runs the
-lane function in a loop over l, and copies the OUT_* fields of a second scratch array to its
-outputs.  The loop then reads and writes only those two arrays (LLVM needs one run-time alias
-check, not one per input and output array), its body is one basic block (every choice a select
-of two computed values, no branch with arithmetic in it, no call: the min/max builtins are
-spelled as selects), and LLVM vectorises it across Gaussians (16 float32 lanes in a zmm register
-on AVX-512 machines, 8 in ymm elsewhere).
+A loop that takes one Gaussian at a time compiles to scalar float code, with a few dozen
+intermediate values per Gaussian.  Where that arithmetic is straight-line, refgs.fast.gaussians
+evaluates it through this module for a *block* of BLOCK Gaussians at once: it stages each input
+of the block as a field of one scratch array (``buf[F * BLOCK + l]`` for Gaussian l of the
+block), runs the lane function in a loop over l, and copies the output fields of a second
+scratch array to its outputs.  The loop then reads and writes only those scratch arrays (LLVM
+needs one run-time alias check, not one per input and output array), its body is one basic block
+(every choice a select of two computed values, no branch with arithmetic in it, no call: the
+min/max builtins are spelled as selects), and LLVM vectorises it across Gaussians (16 float32
+lanes in a zmm register on AVX-512 machines, 8 in ymm elsewhere).
 
 Every value is computed in the Gaussians' dtype (float64 where the spec's rectangle maths is),
 each expression in a fixed operation order (a change of order changes refgs.fast's bits); both
