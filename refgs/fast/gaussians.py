@@ -187,6 +187,7 @@ def gaussians_forward(lo, hi, means, log_scales, quats, logits, oscale, sh, w2c,
     clamped (N,3) bool, radii (N,2) int32, visible (N,) bool, rect (N,4) int64 (x0,x1,y0,y1).
     """
     deg = flags[F_DEGREE]
+    nb = (deg + 1) * (deg + 1)
     W, H = flags[F_WIDTH], flags[F_HEIGHT]
     gx = (W + TILE_SIZE - 1) // TILE_SIZE
     gy = (H + TILE_SIZE - 1) // TILE_SIZE
@@ -200,8 +201,7 @@ def gaussians_forward(lo, hi, means, log_scales, quats, logits, oscale, sh, w2c,
               flags[F_OFFSCREEN_CULL] != 0)
     opacity_extent = flags[F_OPACITY_CULL] != 0 and flags[F_EIG_RULE] == 0
     dims = (W, H, gx, gy)
-    w2 = (w2c[0, 0], w2c[0, 1], w2c[0, 2], w2c[0, 3], w2c[1, 0], w2c[1, 1], w2c[1, 2],
-          w2c[1, 3], w2c[2, 0], w2c[2, 1], w2c[2, 2], w2c[2, 3])
+    w2 = lanes.camera_rows(w2c)
     # scratch, allocated once per call (not per Gaussian)
     basis = np.empty(16, means.dtype)
     L = lanes.BLOCK
@@ -231,7 +231,6 @@ def gaussians_forward(lo, hi, means, log_scales, quats, logits, oscale, sh, w2c,
             if not dist > zero:
                 dist = one
             _sh_basis(dx / dist, dy / dist, dz / dist, deg, basis, cst)
-            nb = (deg + 1) * (deg + 1)
             for ch in range(3):
                 acc = zero
                 for k in range(nb):
@@ -298,8 +297,7 @@ def gaussians_backward(lo, hi, means, log_scales, quats, logits, oscale, sh, w2c
     # the lanes' constants and camera (refgs.fast.lanes.projection_backward_lane)
     cs = (zero, one, cst[K_TWO], cst[K_HALF], cst[K_EPS2D], cst[K_FX], cst[K_FY], cst[K_LNX],
           cst[K_LPX], cst[K_LNY], cst[K_LPY])
-    w2 = (w2c[0, 0], w2c[0, 1], w2c[0, 2], w2c[0, 3], w2c[1, 0], w2c[1, 1], w2c[1, 2],
-          w2c[1, 3], w2c[2, 0], w2c[2, 1], w2c[2, 2], w2c[2, 3])
+    w2 = lanes.camera_rows(w2c)
     aa = flags[F_ANTIALIASED] != 0
     # scratch, allocated once per call (not per Gaussian)
     basis = np.empty(16, means.dtype)

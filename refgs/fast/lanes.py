@@ -70,6 +70,13 @@ def _clip(a, lo, hi):
 
 
 @njit(cache=True, inline="always", error_model="numpy")
+def camera_rows(w2c):
+    """The world-to-camera matrix's first three rows as 12 scalars, row-major (the lanes' w2)."""
+    return (w2c[0, 0], w2c[0, 1], w2c[0, 2], w2c[0, 3], w2c[1, 0], w2c[1, 1], w2c[1, 2],
+            w2c[1, 3], w2c[2, 0], w2c[2, 1], w2c[2, 2], w2c[2, 3])
+
+
+@njit(cache=True, inline="always", error_model="numpy")
 def camera_frame(q0, q1, q2, q3, m0, m1, m2, S0, S1, S2, w2, zero, one, two):
     """Unit quaternion, rotation, M = R diag(S), camera-frame mean t and covariance
     Cc = Rw M M^T Rw^T of one lane (COV-01, CNV-04, CNV-05, PRJ-01), as a tuple: (w, x, y, z,
