@@ -142,8 +142,8 @@ def _load_trainer(run_dir: Path):
 
 class KernelTimes:
     """Wall time per compiled kernel (the per-kernel rows of ``--kernels``): ``wrap`` a runner
-    (refgs.fast.render.parallel_for, and parallel_bands in trees that have it); a call nested in
-    another wrapped call (parallel_bands runs parallel_for) is counted once, by the outer one."""
+    (refgs.fast.render.parallel_for / parallel_bands); a call nested in another wrapped call
+    (parallel_bands runs parallel_for) is counted once, by the outer one."""
 
     def __init__(self, phases: Phases):
         self.phases = phases
@@ -172,8 +172,7 @@ def _instrument(trainer, phases: Phases, kernels: KernelTimes) -> None:
 
     kernel_runner = phases.wrap(kernels.wrap(fr.parallel_for), _kernel_phase)
     fr.parallel_for = kernel_runner
-    if hasattr(fr, "parallel_bands"):                   # older trees
-        fr.parallel_bands = phases.wrap(kernels.wrap(fr.parallel_bands), _kernel_phase)
+    fr.parallel_bands = phases.wrap(kernels.wrap(fr.parallel_bands), _kernel_phase)
     for name in ("refgs.fast.ssim", "refgs.fast.adam"):    # their own reference to parallel_for
         try:
             mod = importlib.import_module(name)

@@ -307,8 +307,8 @@ def test_live_intersections_contain_every_slot_the_screen_keeps(dtype):
                                             full.opacities, eps)
         H, W = full.alpha.shape
         gx, n_tiles = -(-W // 16), c["lists"]["offsets"].size - 1
-        gauss, offsets, pos, _, _ = tl.build_tile_lists(order, c["tile_rect"], n_tiles, gx,
-                                                        rect_off, np.ones(live.size, np.bool_))
+        gauss, offsets, pos = tl.build_tile_lists(order, c["tile_rect"], n_tiles, gx, rect_off,
+                                                  np.ones(live.size, np.bool_))
         assert np.array_equal(gauss, c["lists"]["gauss"])     # the full lists, in depth order
         # the slots the exact screen keeps in some row of the full lists (refgs.fast.tiles.chords)
         dt = np.dtype(dtype)
@@ -496,12 +496,11 @@ def test_deterministic_across_runs_and_thread_counts(dtype):
 
 def test_parallel_pieces_give_the_sequential_result():
     """The depth sort, the tile lists and the per-Gaussian reduction split their work over the
-    threads (refgs.fast.render: depth_order, build_tile_lists, parallel_for); each must equal
-    its one-thread form exactly, ties in depth included, and the reduction must add each
-    Gaussian's rows in intersection order (numpy's unbuffered np.add.at, index by index)."""
+    threads (refgs.fast.render: depth_order, build_tile_lists, parallel_bands); each must equal
+    its one-thread form exactly, ties in depth included."""
     from refgs.fast import kernels as rk
     from refgs.fast import tiles as tl
-    from refgs.fast.render import build_tile_lists, depth_order, parallel_for
+    from refgs.fast.render import build_tile_lists, depth_order, parallel_bands
 
     rng = np.random.default_rng(3)
     n = 50000
@@ -519,10 +518,9 @@ def test_parallel_pieces_give_the_sequential_result():
     r = rect[expected_order]
     rect_off = np.concatenate([[0], np.cumsum((r[:, 1] - r[:, 0]) * (r[:, 3] - r[:, 2]))])
     live = rng.random(int(rect_off[-1])) < 0.7           # a live subset, as tile_alive gives
-    full_g, full_off, full_pos, _, _ = tl.build_tile_lists(expected_order, rect, 8 * 6, 8,
-                                                           rect_off, np.ones(live.size, np.bool_))
-    gauss1, offsets1, pos1, g_off1, entry1 = tl.build_tile_lists(expected_order, rect, 8 * 6, 8,
-                                                               rect_off, live)
+    full_g, full_off, full_pos = tl.build_tile_lists(expected_order, rect, 8 * 6, 8, rect_off,
+                                                     np.ones(live.size, np.bool_))
+    gauss1, offsets1, pos1 = tl.build_tile_lists(expected_order, rect, 8 * 6, 8, rect_off, live)
     # the live lists are the full lists filtered, each entry keeping its full-list position
     for t in range(8 * 6):
         fl = full_g[full_off[t]:full_off[t + 1]]
@@ -530,27 +528,19 @@ def test_parallel_pieces_give_the_sequential_result():
         p = pos1[offsets1[t]:offsets1[t + 1]]
         assert np.all(np.diff(p) > 0) and np.array_equal(fl[p], gauss1[offsets1[t]:offsets1[t + 1]])
     assert gauss1.size == int(live.sum())
-    # entry: the list entries in Gaussian-major order, each Gaussian's in intersection order
-    assert np.array_equal(np.sort(entry1), np.arange(gauss1.size))
-    owner = np.repeat(expected_order, np.diff(g_off1))
-    assert np.array_equal(gauss1[entry1], owner)
-    assert np.all(np.diff(entry1)[np.diff(owner) == 0] > 0)
-    contrib = rng.normal(size=(gauss1.size, rk.N_GRAD_COLUMNS))     # per list entry
+    contrib = rng.normal(size=(gauss1.size, rk.N_GRAD_COLUMNS))
     ref = np.zeros((n, rk.N_GRAD_COLUMNS))
-    np.add.at(ref, gauss1, contrib)                     # unbuffered, in intersection order
+    rk.reduce_by_gaussian(0, n, gauss1, contrib, ref)
     saved = numba.get_num_threads()
     try:
         for nt in sorted({1, saved, min(2, numba.config.NUMBA_NUM_THREADS)}):
             numba.set_num_threads(nt)
             assert np.array_equal(depth_order(idx, depths), expected_order), nt
-            gauss, offsets, pos, g_off, entry = build_tile_lists(expected_order, rect, 8, 6,
-                                                               rect_off, live)
+            gauss, offsets, pos = build_tile_lists(expected_order, rect, 8, 6, rect_off, live)
             assert np.array_equal(gauss, gauss1) and np.array_equal(offsets, offsets1), nt
-            assert np.array_equal(pos, pos1) and np.array_equal(g_off, g_off1), nt
-            assert np.array_equal(entry, entry1), nt
+            assert np.array_equal(pos, pos1), nt
             out = np.zeros_like(ref)
-            parallel_for(rk.reduce_by_gaussian, expected_order.size, expected_order, g_off1,
-                         entry1, contrib, out, min_chunk=997)
+            parallel_bands(rk.reduce_by_gaussian, n, gauss1, contrib, out)
             assert np.array_equal(out, ref), nt
     finally:
         numba.set_num_threads(saved)

@@ -26,10 +26,9 @@ and the screen are refgs.fast.tiles'.
   slot over the rows the forward's screen kept (``row_mask``).  Each slot's contributions are
   summed over the tile in a fixed order -- per lane over the rows top to bottom (in the lane
   loop, SIMD), then the 16 lane sums in lane order -- into a buffer row per intersection;
-  :func:`reduce_by_gaussian` then adds each Gaussian's rows into its gradients in intersection
-  order, walking only that Gaussian's own intersections (threads split the Gaussians).  No
-  atomics, no races: the result is bit-identical for any thread count and any split of the
-  tiles into work items.
+  :func:`reduce_by_gaussian` then adds the rows into per-Gaussian gradients in intersection
+  order (threads split the Gaussians, not the intersections).  No atomics, no races: the result
+  is bit-identical for any thread count and any split of the tiles into work items.
 
 Multiply-adds.  Each kernel exists twice, with one body: ``composite_forward`` /
 ``composite_backward`` evaluate every expression in the reference's operation order, one
@@ -402,19 +401,16 @@ COMPOSITING_KERNELS = {np.dtype(np.float32): (composite_forward_fma, composite_b
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def reduce_by_gaussian(lo, hi, order, g_off, entry, contrib, out):
-    """out[order[k]] = the sum of contrib's rows of Gaussian order[k], k = lo..hi-1 (the visible
-    Gaussians in depth order), added from 0 in intersection order: a fixed-order, race-free
-    reduction, each Gaussian's sum the same for any split of [0, V) into ranges.  g_off, entry:
-    refgs.fast.tiles.tile_fill -- order[k]'s list entries are entry[g_off[k] .. g_off[k + 1] - 1],
-    its live tiles row by row, so in increasing tile index, which is the intersection order (a
-    tile's list lies before the next tile's).  out (N, 10) in its own dtype (the sums are in
-    it); the rows of Gaussians not in ``order`` are not written."""
-    for k in range(lo, hi):
-        g = order[k]
-        for f in range(contrib.shape[1]):
-            out[g, f] = 0.0
-        for q in range(g_off[k], g_off[k + 1]):
-            p = entry[q]
-            for f in range(contrib.shape[1]):
-                out[g, f] += contrib[p, f]
+def reduce_by_gaussian(lo, hi, gauss, contrib, out):
+    """out[g] = the sum of contrib[p] over the intersections p of a Gaussian g = gauss[p] with
+    lo <= g < hi, added from 0 in intersection order (a fixed-order, race-free reduction: each
+    Gaussian's sum has the same order whatever the split of [0, N) into ranges); rows lo..hi of
+    out (N, 10) are zeroed first, so Gaussians without intersections get zero rows."""
+    for g in range(lo, hi):
+        for k in range(contrib.shape[1]):
+            out[g, k] = 0.0
+    for p in range(gauss.size):
+        g = gauss[p]
+        if lo <= g < hi:
+            for k in range(contrib.shape[1]):
+                out[g, k] += contrib[p, k]

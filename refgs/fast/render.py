@@ -11,7 +11,7 @@ Stages (the same as refgs.render, clause ids there):
 and backward
 
     composite_backward (per tile, a per-intersection buffer) -> reduce_by_gaussian (per
-    Gaussian over its own intersections, in intersection order; chunks of Gaussians in parallel)
+    Gaussian, intersection order; bands of Gaussians in parallel)
     -> gaussians_backward (per Gaussian).
 
 Every kernel is compiled once per dtype (float32 / float64) and cached on disk (numba
@@ -93,6 +93,14 @@ def parallel_for(kernel, n_items: int, *args, min_chunk: int = 1) -> None:
         f.result()
 
 
+def parallel_bands(kernel, n_items: int, *args) -> None:
+    """``kernel(lo, hi, *args)`` over [0, n_items) in one band per thread: for kernels whose every
+    call scans a whole shared input (the tile lists, the per-Gaussian reduction) and keeps only
+    what falls in its band, so more bands than threads would only repeat the scan."""
+    n_threads = max(1, int(numba.get_num_threads()))
+    parallel_for(kernel, n_items, *args, min_chunk=max(1, -(-n_items // n_threads)))
+
+
 def depth_order(idx, depths) -> np.ndarray:
     """``idx[np.argsort(depths[idx], kind="stable")]`` (RAS-02: by depth, ties by index; idx
     ascending).  Finite depths are sorted by refgs.fast.tiles.radix_argsort on their bits, turned
@@ -145,8 +153,7 @@ def build_tile_lists(order, rect, gx: int, gy: int, rect_off=None, live=None, re
     the lists are the sequential ones.  ``rect_off``/``live`` from :func:`live_intersections`
     (default: every intersection, the full lists), ``rect_s`` = rect[order] if the caller has it.
     Returns (gauss (P,) int64, offsets (gx gy + 1,) int64, pos (P,) int32: each entry's position
-    in its tile's full list, g_off (V+1,) int64 and entry (P,) int64: the same entries in
-    Gaussian-major order, refgs.fast.tiles.tile_fill)."""
+    in its tile's full list)."""
     if live is None:
         rect_off, live = _every_intersection(order, rect)
     V, n_tiles = order.size, gx * gy
@@ -157,20 +164,16 @@ def build_tile_lists(order, rect, gx: int, gy: int, rect_off=None, live=None, re
     n_chunks = max(1, -(-V // chunk))
     counts = np.zeros((n_chunks, n_tiles), np.int64)
     full = np.zeros((n_chunks, n_tiles), np.int64)
-    n_live = np.empty(V, np.int64)
-    parallel_for(tl.tile_counts, V, chunk, rect_s, rect_off, live, gx, counts, full, n_live,
+    parallel_for(tl.tile_counts, V, chunk, rect_s, rect_off, live, gx, counts, full,
                  min_chunk=chunk)
-    g_off = np.zeros(V + 1, np.int64)
-    np.cumsum(n_live, out=g_off[1:])
     offsets = np.zeros(n_tiles + 1, np.int64)
     np.cumsum(counts.sum(axis=0), out=offsets[1:])
     cursor, full_start = tl.chunk_starts(counts, full, offsets)
     gauss = np.empty(int(offsets[-1]), np.int64)
     pos = np.empty(int(offsets[-1]), np.int32)
-    entry = np.empty(int(offsets[-1]), np.int64)
     parallel_for(tl.tile_fill, V, chunk, order, rect_s, rect_off, live, gx, cursor, full_start,
-                 gauss, pos, g_off, entry, min_chunk=chunk)
-    return gauss, offsets, pos, g_off, entry
+                 gauss, pos, min_chunk=chunk)
+    return gauss, offsets, pos
 
 
 def input_error(field: str, expected: str, got) -> None:
@@ -261,8 +264,7 @@ def render(gaussians, camera, config: RenderConfig | None = None, *,
     # intersections; module docstring of refgs.fast.tiles), n_contrib still counts full lists
     rect_s = tl.rects_in_order(order, rect)                       # rect[order]
     rect_off, live = live_intersections(order, rect, means2d_c, conics, opac, eps, screen, rect_s)
-    gauss, offsets, pos, g_off, entry = build_tile_lists(order, rect, gx, gy, rect_off, live,
-                                                       rect_s)
+    gauss, offsets, pos = build_tile_lists(order, rect, gx, gy, rect_off, live, rect_s)
     longest = int(np.max(np.diff(offsets))) if offsets.size > 1 else 0
     if longest > rk.MAX_LIST_LENGTH[np.dtype(dt)]:       # the kernels count slots in dt
         input_error("gaussians", f"at most {rk.MAX_LIST_LENGTH[np.dtype(dt)]} Gaussians on one "
@@ -279,8 +281,7 @@ def render(gaussians, camera, config: RenderConfig | None = None, *,
                  depth, n_contrib, last, final_T, row_mask)
     cache = {"tag": CACHE_TAG, "profile": profile, "sh_degree": deg,
              "lists": {"gauss": gauss, "offsets": offsets, "pos": pos,
-                       "full_size": int(live.size), "order": order, "g_off": g_off,
-                       "entry": entry},
+                       "full_size": int(live.size)},
              "tile_rect": rect, "last": last, "row_mask": row_mask,
              "arrays": (means, log_scales, quats, logits, oscale, sh, w2c, campos),
              "cst": cst, "flags": flags, "rc": rc, "bg": bg, "screen": bool(screen),
@@ -324,10 +325,8 @@ def render_backward(out: RenderOutput, v_image, v_alpha=None, v_depth=None) -> G
                  v_image, v_alpha, v_depth, c["row_mask"], contrib)
     means, log_scales, quats, logits, oscale, sh, w2c, campos = c["arrays"]
     gdt = means.dtype                       # the per-Gaussian stage's precision (render geometry)
-    per_g = np.zeros((n, rk.N_GRAD_COLUMNS), gdt)               # culled rows stay 0
-    order = c["lists"]["order"]
-    parallel_for(rk.reduce_by_gaussian, order.size, order, c["lists"]["g_off"],
-                 c["lists"]["entry"], contrib, per_g, min_chunk=MIN_GAUSSIAN_CHUNK)
+    per_g = np.empty((n, rk.N_GRAD_COLUMNS), gdt)
+    parallel_bands(rk.reduce_by_gaussian, n, gauss, contrib, per_g)   # culled rows stay 0
     # the gradients in the output dtype directly (each entry stored once by the kernel, so a
     # float32 output of float64 geometry is rounded once, as a cast of the float64 result)
     o_means, o_ls, o_quats = np.empty((n, 3), dt), np.empty((n, 3), dt), np.empty((n, 4), dt)

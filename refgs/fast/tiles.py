@@ -105,43 +105,36 @@ def rects_in_order(order, rect):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def tile_counts(lo, hi, chunk, rect_s, rect_off, live, gx, counts, full, n_live):
+def tile_counts(lo, hi, chunk, rect_s, rect_off, live, gx, counts, full):
     """The first pass of :func:`build_tile_lists` for the Gaussians order[lo:hi], into row
     c = lo // chunk of counts and full (C, n_tiles) int64: counts[c, t] += how many of them are
     live in tile t (``live``, :func:`tile_alive`), full[c, t] += how many hold t in their
-    rectangle; n_live[k] = how many tiles order[k] is live in.  rect_s: :func:`rects_in_order`."""
+    rectangle.  rect_s: :func:`rects_in_order`."""
     c = lo // chunk
     for k in range(lo, hi):
         x0, x1, y0, y1 = rect_s[k, 0], rect_s[k, 1], rect_s[k, 2], rect_s[k, 3]
         i = rect_off[k]
-        m = 0
         for ty in range(y0, y1):
             row = ty * gx
             for tx in range(x0, x1):
                 counts[c, row + tx] += live[i]
                 full[c, row + tx] += 1
-                m += live[i]
                 i += 1
-        n_live[k] = m
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def tile_fill(lo, hi, chunk, order, rect_s, rect_off, live, gx, cursor, full, gauss, pos, g_off,
-              entry):
+def tile_fill(lo, hi, chunk, order, rect_s, rect_off, live, gx, cursor, full, gauss, pos):
     """The second pass for the Gaussians order[lo:hi], in that order, with row c = lo // chunk
     of cursor and full (C, n_tiles): each Gaussian appended to the lists of the tiles where it is
     live (cursor[c, t]: this chunk's next free position in tile t's list) with pos = its position
     in the tile's full list (every Gaussian whose rectangle holds the tile, live or not; full[c, t]
     starts at the number of those in the chunks before), which is what n_contrib reports
-    (RAS-06).  entry (P,) int64: the list entries in Gaussian-major order -- order[k]'s live
-    tiles row by row at entry[g_off[k] .. g_off[k + 1] - 1] (g_off: prefix sums of
-    tile_counts' n_live) -- for the per-Gaussian reduction of the backward."""
+    (RAS-06)."""
     c = lo // chunk
     for k in range(lo, hi):
         g = order[k]
         x0, x1, y0, y1 = rect_s[k, 0], rect_s[k, 1], rect_s[k, 2], rect_s[k, 3]
         i = rect_off[k]
-        m = g_off[k]
         for ty in range(y0, y1):
             row = ty * gx
             for tx in range(x0, x1):
@@ -150,8 +143,6 @@ def tile_fill(lo, hi, chunk, order, rect_s, rect_off, live, gx, cursor, full, ga
                     j = cursor[c, t]
                     gauss[j] = g
                     pos[j] = full[c, t]
-                    entry[m] = j
-                    m += 1
                     cursor[c, t] = j + 1
                 full[c, t] += 1
                 i += 1
@@ -261,28 +252,22 @@ def build_tile_lists(order, rect, n_tiles, gx, rect_off, live):
     order (V,) int64: visible Gaussians sorted by (depth, index); rect (N,4) int64 (x0,x1,y0,y1),
     max exclusive; rect_off (V+1,) int64: start of order[k]'s rectangle in ``live`` (row-major),
     live (rect_off[V],) bool (all True: the full lists of the spec).  Returns (gauss (P,) int64,
-    offsets (n_tiles+1,) int64, pos (P,) int32, g_off (V+1,) int64, entry (P,) int64): tile t's
-    list is gauss[offsets[t]:offsets[t+1]], pos the positions in the full lists; g_off and entry
-    the same entries in Gaussian-major order (:func:`tile_fill`).  (refgs.fast.render runs both passes over chunks of the
+    offsets (n_tiles+1,) int64, pos (P,) int32): tile t's list is gauss[offsets[t]:offsets[t+1]],
+    pos the positions in the full lists.  (refgs.fast.render runs both passes over chunks of the
     Gaussians in parallel, with the same result: a chunk's entries of a tile go after those of
     the chunks before, :func:`chunk_starts`.)
     """
     V = order.size
     rect_s = rects_in_order(order, rect)
     counts, full = np.zeros((1, n_tiles), np.int64), np.zeros((1, n_tiles), np.int64)
-    n_live = np.empty(V, np.int64)
-    tile_counts(0, V, max(V, 1), rect_s, rect_off, live, gx, counts, full, n_live)
-    g_off = np.zeros(V + 1, np.int64)
-    np.cumsum(n_live, out=g_off[1:])
+    tile_counts(0, V, max(V, 1), rect_s, rect_off, live, gx, counts, full)
     offsets = np.zeros(n_tiles + 1, np.int64)
     np.cumsum(counts[0], out=offsets[1:])
     cursor, full_start = chunk_starts(counts, full, offsets)
     gauss = np.empty(int(offsets[n_tiles]), np.int64)
     pos = np.empty(int(offsets[n_tiles]), np.int32)
-    entry = np.empty(int(offsets[n_tiles]), np.int64)
-    tile_fill(0, V, max(V, 1), order, rect_s, rect_off, live, gx, cursor, full_start, gauss, pos,
-              g_off, entry)
-    return gauss, offsets, pos, g_off, entry
+    tile_fill(0, V, max(V, 1), order, rect_s, rect_off, live, gx, cursor, full_start, gauss, pos)
+    return gauss, offsets, pos
 
 
 @njit(cache=True, error_model="numpy")
