@@ -277,6 +277,50 @@ def test_screen_is_exact():
                 np.testing.assert_array_equal(getattr(ga, k), getattr(gb, k), err_msg=k)
 
 
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_screen_slots_is_slot_rows(dtype):
+    """refgs.fast.tiles.screen_slots (the screen across a tile's slots, branches as selects) gives
+    slot_rows' mask for every slot, bit for bit: slots inside, across and outside the tile, at
+    its edges, opacities around 1/255 and 0, odd conics (negative, zero determinant, NaN, inf),
+    non-finite means, and with the screen switched off."""
+    from refgs.fast import tiles as tl
+    rng = np.random.default_rng(5)
+    n = 4000
+    tab = np.zeros((n, tl.N_TAB), dtype)
+    x0, y0 = 32.5, 16.5                                 # the tile at (2, 1)
+    tab[:, 0] = x0 - 6 + rng.uniform(0, 28, n)          # means around the tile
+    tab[:, 1] = y0 - 6 + rng.uniform(0, 28, n)
+    tab[::7, 0] = x0 + rng.integers(-1, 17, tab[::7].shape[0])   # on pixel centres' grid
+    ang, a, b = rng.uniform(0, np.pi, n), 10.0 ** rng.uniform(-3, 1, n), 10.0 ** rng.uniform(-3, 1, n)
+    c, s_ = np.cos(ang), np.sin(ang)
+    tab[:, 2] = c * c * a + s_ * s_ * b                  # positive-definite conics, elongated
+    tab[:, 3] = c * s_ * (a - b)
+    tab[:, 4] = s_ * s_ * a + c * c * b
+    tab[:, 5] = 10.0 ** rng.uniform(-3, 0, n)           # opacities around 1/255
+    tab[::11, 5] = 0.0
+    tab[::13, 5] = 1.0 / 255.0
+    tab[1::17, 2] = -tab[1::17, 2]                      # odd conics
+    tab[2::19, 3] = np.sqrt(np.abs(tab[2::19, 2] * tab[2::19, 4]))   # det ~ 0
+    tab[3::23, 4] = np.nan
+    tab[4::29, 2] = np.inf
+    tab[5::31, 0] = np.nan
+    tab[6::37, 1] = -np.inf
+    tab[:, 10] = rng.normal(0, 1e-6, n)                 # residuals of a float64 mean
+    tab[::2, 10:] = 0.0
+    ys = (y0 + np.arange(16)).astype(dtype)
+    eps = float(np.finfo(dtype).eps)
+    scr = np.empty((tl.N_SCREEN_ROWS, n))
+    for screen in (True, False):
+        got = np.empty(n, np.int64)
+        tl.screen_slots(tab, n, x0, x0 + 15, y0, y0 + 15, ys, eps, screen, scr, got)
+        want = np.array([tl.slot_rows(tab, k, x0, x0 + 15, y0, y0 + 15, ys, eps, screen)
+                         for k in range(n)])
+        np.testing.assert_array_equal(got, want)
+        if screen:                              # every kind of verdict occurred
+            assert (want == 0).any() and (want == 2 ** 32 - 1).any()
+            assert ((want != 0) & (want != 2 ** 32 - 1)).sum() > n // 10
+
+
 def _needles(n, seed):
     """Elongated, rotated Gaussians of every opacity around the 1/255 threshold (logits from
     -8 to 4: o from 3e-4 to 0.98) in front of a 96x80 camera."""

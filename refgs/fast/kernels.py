@@ -46,7 +46,7 @@ from numba.cpython.unsafe.numbers import leading_zeros, trailing_zeros
 
 from ..constants import TILE_SIZE
 from .fexp import fast_exp
-from .tiles import N_TAB, centres, gather, gaussian_power, max_len, slot_rows
+from .tiles import N_SCREEN_ROWS, N_TAB, centres, gather, gaussian_power, max_len, screen_slots
 
 # indices of the compositing constants array (in the Gaussians' dtype)
 R_ZERO, R_ONE, R_NEG_HALF, R_CAP, R_ALPHA_MIN, R_T_MIN = 0, 1, 2, 3, 4, 5
@@ -93,6 +93,7 @@ def _forward_tiles(lo, hi, gauss, offsets, pos, means2d, conics, opac, colors, d
     neg_half, cap, amin = rc[R_NEG_HALF], rc[R_CAP], rc[R_ALPHA_MIN]
     dt = conics.dtype                       # the compositing dtype (means2d may be float64)
     tab = np.empty((max_len(offsets, lo, hi), N_TAB), dt)
+    scr = np.empty((N_SCREEN_ROWS, tab.shape[0]), np.float64)
     st = np.empty(_N_STATE * _NPIX, dt)
     for tile in range(lo, hi):
         start = offsets[tile]
@@ -120,12 +121,11 @@ def _forward_tiles(lo, hi, gauss, offsets, pos, means2d, conics, opac, colors, d
                 live_rows |= 1 << r
         x0, x1 = np.float64(xs[0]), np.float64(xs[T - 1])
         y0, y1 = np.float64(ys[0]), np.float64(ys[T - 1])
-        # the screen of every slot first, in a loop of its own: the lanes' branches then read a
-        # mask already computed, where a mask computed in the slot loop resolves them late
-        # (its log, square roots and divisions) and stalls the pipeline on every misprediction
-        # (docs/fast.md, "Speed")
-        for s in range(L):
-            row_mask[start + s] = slot_rows(tab, s, x0, x1, y0, y1, ys, eps, screen)
+        # the screen of every slot first, across the slots (tiles.screen_slots): the lanes'
+        # branches then read a mask already computed, where a mask computed in the slot loop
+        # resolves them late (its log, square roots and divisions) and stalls the pipeline on
+        # every misprediction (docs/fast.md, "Speed")
+        screen_slots(tab, L, x0, x1, y0, y1, ys, eps, screen, scr, row_mask[start:start + L])
         s = 0
         while s < L and live_rows != 0:
             rows = row_mask[start + s]

@@ -470,6 +470,64 @@ def slot_rows(tab, s, x0, x1, y0, y1, ys, eps, screen):
     return _rows_keep(mx, my, A, B, C, det, q, x0, ys, r_lo, r_hi)
 
 
+#: rows of :func:`screen_slots`' scratch (float64, one column per list slot)
+_SC_LG, _SC_MX, _SC_MY, _SC_DET, _SC_Q, _SC_RLO, _SC_RHI, _SC_VERDICT = range(8)
+N_SCREEN_ROWS = 8
+
+
+@njit(cache=True, error_model="numpy")
+def screen_slots(tab, L, x0, x1, y0, y1, ys, eps, screen, scr, out):
+    """out[s] = :func:`slot_rows` (tab, s, ...) for every list slot s < L of a tile, bit for bit
+    (tests/test_fast.py checks it), computed across the slots: the per-slot part of the screen
+    (:func:`_screen_values`) runs as lanes of 8 slots (float64 SIMD) -- every branch a select,
+    the verdict a number -- and only the row masks (:func:`_rows_keep`, itself vectorised over
+    the 16 rows) run slot by slot.  scr (N_SCREEN_ROWS, >= L) float64 is caller-owned scratch.
+    The log of the opacity term is a library call, so it has a loop of its own."""
+    T = TILE_SIZE
+    top = T - 1.0
+    for s in range(L):
+        scr[_SC_LG, s] = _log_term(np.float64(tab[s, 5]))
+    for s in range(L):              # lanes: one basic block, the branches of _screen_values
+        mx = np.float64(tab[s, 0]) + np.float64(tab[s, 10])     # as selects, same arithmetic
+        my = np.float64(tab[s, 1]) + np.float64(tab[s, 11])
+        A, B, C = np.float64(tab[s, 2]), np.float64(tab[s, 3]), np.float64(tab[s, 4])
+        o = np.float64(tab[s, 5])
+        det = A * C - B * B
+        ax0, ax1 = abs(mx - x0), abs(mx - x1)
+        ay0, ay1 = abs(my - y0), abs(my - y1)
+        dxm = ax1 if ax1 > ax0 else ax0
+        dym = ay1 if ay1 > ay0 else ay0
+        terms = abs(A) * dxm * dxm + abs(C) * dym * dym + 2.0 * abs(B) * dxm * dym
+        q = scr[_SC_LG, s] + SCREEN_ULPS * eps * terms + SCREEN_MARGIN
+        finite = (det - det == 0.0) & (q - q == 0.0) & (mx - mx == 0.0) & (my - my == 0.0)
+        odd = (not screen) | (not ((A > 0.0) & (C > 0.0) & (det > 0.0) & finite))
+        den = det - _F64_ULPS * (A * C + B * B)
+        band = den > 0.0
+        dy_max = math.sqrt(A * q * (1.0 + _F64_ULPS) / den) * (1.0 + _F64_ULPS) + _CHORD_PAD
+        ylo = my - dy_max - y0
+        yhi = my + dy_max - y0
+        empty = (not (q > 0.0)) | (band & ((yhi < 0.0) | (ylo > top)))
+        verdict = _SKIP if (screen & (o == 0.0)) else (
+            _ALL_ROWS if odd else (_SKIP if empty else _SCREENED))
+        scr[_SC_MX, s] = mx
+        scr[_SC_MY, s] = my
+        scr[_SC_DET, s] = det
+        scr[_SC_Q, s] = q
+        scr[_SC_RLO, s] = math.ceil(ylo) if (band & (ylo > 0.0)) else 0.0
+        scr[_SC_RHI, s] = math.floor(yhi) if (band & (yhi < top)) else top
+        scr[_SC_VERDICT, s] = np.float64(verdict)
+    for s in range(L):
+        verdict = scr[_SC_VERDICT, s]
+        if verdict == _SKIP:
+            out[s] = 0
+        elif verdict == _ALL_ROWS:
+            out[s] = (1 << (2 * T)) - 1
+        else:
+            out[s] = _rows_keep(scr[_SC_MX, s], scr[_SC_MY, s], np.float64(tab[s, 2]),
+                                np.float64(tab[s, 3]), np.float64(tab[s, 4]), scr[_SC_DET, s],
+                                scr[_SC_Q, s], x0, ys, int(scr[_SC_RLO, s]), int(scr[_SC_RHI, s]))
+
+
 @njit(cache=True, inline="always", error_model="numpy")
 def gaussian_power(A, B, Cdy2, dx, dy, neg_half):
     """-0.5 (A dx^2 + C dy^2) - B dx dy with d = mean - pixel (RAS-03), C dy^2 precomputed per row
