@@ -80,7 +80,6 @@ KERNEL_PHASES = {
     "_pass_moments": "SSIM", "_pass_adjoint": "SSIM", "_pass_planes": "SSIM",
     "_pass_loss_grad": "SSIM", "_pass_loss": "SSIM", "screen_inputs": "tile lists",
     "_update": "Adam",
-    "rects_in_order": "render glue",    # as where it ran serially inside render (older trees)
 }
 PHASES = ("projection", "depth sort", "tile lists", "composite fwd", "composite bwd",
           "per-Gaussian bwd", "render glue", "backward glue", "SSIM", "loss glue", "Adam",

@@ -119,25 +119,25 @@ def depth_order(idx, depths) -> np.ndarray:
     return idx[tl.radix_argsort(sortable, nbits)]
 
 
-def rects_and_offsets(order, rect):
-    """refgs.fast.tiles.rects_and_offsets (rect[order] and where each rectangle's tiles start in
-    the per-intersection arrays), the gather in chunks of Gaussians on the threads."""
-    return tl.rects_and_offsets(order, rect, lambda kernel, n, *args: parallel_for(
-        kernel, n, *args, min_chunk=MIN_GAUSSIAN_CHUNK))
+def _every_intersection(order, rect):
+    """(rect_off, live) of the full lists: every tile of every rectangle live."""
+    rect_off = np.empty(order.size + 1, np.int64)
+    tl.rect_offsets(order, rect, rect_off)
+    return rect_off, np.ones(int(rect_off[-1]), np.bool_)
 
 
 def live_intersections(order, rect, means2d, conics, opac, eps: float, screen: bool = True,
-                       rect_s=None, rect_off=None):
+                       rect_s=None):
     """(rect_off (V+1,) int64, live (P_full,) bool): for each visible Gaussian order[k] and each
     tile of its rectangle (row-major, from rect_off[k]) whether the screen may keep it in some
     pixel row there (refgs.fast.tiles.tile_alive, conservative, per Gaussian on the threads);
-    all True without the screen (``screen=False``: the spec's full lists).  ``rect_s``,
-    ``rect_off``: :func:`rects_and_offsets` if the caller has them."""
-    if rect_s is None or rect_off is None:
-        rect_s, rect_off = rects_and_offsets(order, rect)
-    live = np.ones(int(rect_off[-1]), np.bool_)
+    all True without the screen (``screen=False``: the spec's full lists).  ``rect_s``:
+    rect[order] (refgs.fast.tiles.rects_in_order) if the caller has it."""
+    rect_off, live = _every_intersection(order, rect)
     if not screen:
         return rect_off, live
+    if rect_s is None:
+        rect_s = tl.rects_in_order(order, rect)
     scr = np.empty((order.size, 6), np.float64)
     parallel_for(tl.screen_inputs, order.size, order, means2d, conics, opac, scr,
                  min_chunk=MIN_GAUSSIAN_CHUNK)
@@ -151,14 +151,14 @@ def build_tile_lists(order, rect, gx: int, gy: int, rect_off=None, live=None, re
     Gaussians in depth order on the threads: each chunk counts its own entries per tile, and
     its entries of a tile are placed after those of the chunks before (tiles.chunk_starts), so
     the lists are the sequential ones.  ``rect_off``/``live`` from :func:`live_intersections`
-    (default: every intersection, the full lists), ``rect_s``: :func:`rects_and_offsets` if the
-    caller has it.  Returns (gauss (P,) int64, offsets (gx gy + 1,) int64, pos (P,) int32: each
-    entry's position in its tile's full list)."""
-    if rect_s is None or rect_off is None:
-        rect_s, rect_off = rects_and_offsets(order, rect)    # rect_off is a function of these
+    (default: every intersection, the full lists), ``rect_s`` = rect[order] if the caller has it.
+    Returns (gauss (P,) int64, offsets (gx gy + 1,) int64, pos (P,) int32: each entry's position
+    in its tile's full list)."""
     if live is None:
-        live = np.ones(int(rect_off[-1]), np.bool_)
+        rect_off, live = _every_intersection(order, rect)
     V, n_tiles = order.size, gx * gy
+    if rect_s is None:
+        rect_s = tl.rects_in_order(order, rect)
     n_threads = max(1, int(numba.get_num_threads()))
     chunk = chunk_length(V, max(MIN_LIST_CHUNK, -(-V // n_threads)))    # one chunk per thread
     n_chunks = max(1, -(-V // chunk))
@@ -262,9 +262,8 @@ def render(gaussians, camera, config: RenderConfig | None = None, *,
     eps = float(np.finfo(dt).eps)
     # the tile lists keep only the Gaussians the screen keeps in some row of a tile (live
     # intersections; module docstring of refgs.fast.tiles), n_contrib still counts full lists
-    rect_s, rect_off = rects_and_offsets(order, rect)             # rect[order]
-    rect_off, live = live_intersections(order, rect, means2d_c, conics, opac, eps, screen, rect_s,
-                                        rect_off)
+    rect_s = tl.rects_in_order(order, rect)                       # rect[order]
+    rect_off, live = live_intersections(order, rect, means2d_c, conics, opac, eps, screen, rect_s)
     gauss, offsets, pos = build_tile_lists(order, rect, gx, gy, rect_off, live, rect_s)
     longest = int(np.max(np.diff(offsets))) if offsets.size > 1 else 0
     if longest > rk.MAX_LIST_LENGTH[np.dtype(dt)]:       # the kernels count slots in dt

@@ -93,31 +93,15 @@ def radix_argsort(keys, nbits):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def rects_in_order(lo, hi, order, rect, rect_s, area):
-    """rect_s[k] = rect[order[k]] (V, 4) int64, k = lo..hi-1: the tile rectangles of the visible
-    Gaussians in depth order, so that the passes of :func:`build_tile_lists` read them front to
-    back, not scattered; area[k] = the rectangle's number of tiles (0 if empty), whose prefix
-    sums place each rectangle's tiles in the per-intersection ``live`` array (row-major)."""
-    for k in range(lo, hi):
+def rects_in_order(order, rect):
+    """rect[order] (V, 4) int64: the tile rectangles of the visible Gaussians in depth order, so
+    that the passes of :func:`build_tile_lists` read them front to back, not scattered."""
+    out = np.empty((order.size, 4), np.int64)
+    for k in range(order.size):
         g = order[k]
         for j in range(4):
-            rect_s[k, j] = rect[g, j]
-        area[k] = max(rect[g, 1] - rect[g, 0], 0) * max(rect[g, 3] - rect[g, 2], 0)
-
-
-def rects_and_offsets(order, rect, run=None):
-    """(rect_s (V, 4) int64 = rect[order], rect_off (V+1,) int64: where each rectangle's tiles
-    start in the per-intersection ``live`` array) in one pass (:func:`rects_in_order`), run as
-    ``run(kernel, V, *args)`` (refgs.fast.render.parallel_for; default: one call)."""
-    rect_s = np.empty((order.size, 4), np.int64)
-    area = np.empty(order.size, np.int64)
-    if run is None:
-        rects_in_order(0, order.size, order, rect, rect_s, area)
-    else:
-        run(rects_in_order, order.size, order, rect, rect_s, area)
-    rect_off = np.zeros(order.size + 1, np.int64)
-    np.cumsum(area, out=rect_off[1:])
-    return rect_s, rect_off
+            out[k, j] = rect[g, j]
+    return out
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -125,7 +109,7 @@ def tile_counts(lo, hi, chunk, rect_s, rect_off, live, gx, counts, full):
     """The first pass of :func:`build_tile_lists` for the Gaussians order[lo:hi], into row
     c = lo // chunk of counts and full (C, n_tiles) int64: counts[c, t] += how many of them are
     live in tile t (``live``, :func:`tile_alive`), full[c, t] += how many hold t in their
-    rectangle.  rect_s: :func:`rects_and_offsets`."""
+    rectangle.  rect_s: :func:`rects_in_order`."""
     c = lo // chunk
     for k in range(lo, hi):
         x0, x1, y0, y1 = rect_s[k, 0], rect_s[k, 1], rect_s[k, 2], rect_s[k, 3]
@@ -171,6 +155,16 @@ def chunk_starts(counts, full, offsets):
     return cursor, np.cumsum(full, axis=0) - full
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def rect_offsets(order, rect, out):
+    """out (V+1,) = prefix sums of the tile counts of the rectangles of order's Gaussians: where
+    each rectangle's tiles start in the per-intersection ``live`` array (row-major)."""
+    out[0] = 0
+    for k in range(order.size):
+        g = order[k]
+        out[k + 1] = out[k] + max(rect[g, 1] - rect[g, 0], 0) * max(rect[g, 3] - rect[g, 2], 0)
+
+
 #: relative and absolute (pixels) widening of :func:`tile_alive`'s bounds: far above the
 #: float64 rounding of its own arithmetic and of the screen's (_F64_ULPS, _CHORD_PAD), so that
 #: its live set contains every slot the screen keeps; pixel centres are 1 px apart, so the
@@ -197,7 +191,7 @@ def screen_inputs(lo, hi, order, means2d, conics, opac, out):
 @njit(cache=True, nogil=True, error_model="numpy")
 def tile_alive(lo, hi, rect_s, rect_off, scr, eps, live):
     """For the Gaussians k = lo..hi of the depth order: live[rect_off[k] + (ty - y0) (x1 - x0) +
-    (tx - x0)] for each tile (tx, ty) of their rectangle rect_s[k] (:func:`rects_and_offsets`);
+    (tx - x0)] for each tile (tx, ty) of their rectangle rect_s[k] (:func:`rects_in_order`);
     scr (V, 6) float64: their mean, conic and opacity in that order (:func:`screen_inputs`), so
     that this loop, long per Gaussian, reads its inputs in sequence (docs/fast.md, "Speed").
 
@@ -264,7 +258,7 @@ def build_tile_lists(order, rect, n_tiles, gx, rect_off, live):
     the chunks before, :func:`chunk_starts`.)
     """
     V = order.size
-    rect_s, _ = rects_and_offsets(order, rect)
+    rect_s = rects_in_order(order, rect)
     counts, full = np.zeros((1, n_tiles), np.int64), np.zeros((1, n_tiles), np.int64)
     tile_counts(0, V, max(V, 1), rect_s, rect_off, live, gx, counts, full)
     offsets = np.zeros(n_tiles + 1, np.int64)
