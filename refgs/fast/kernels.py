@@ -8,8 +8,9 @@ and the screen are refgs.fast.tiles'.
   back: power (skip > 0), alpha = min(cap, o G) (skip < 1/255), the profile's stop rule on
   T (1 - alpha) with the saturating Gaussian not blended, colour / depth accumulation, T_final and
   n_contrib (1-based list position of the last blended Gaussian).  The list slot is the outer
-  loop: each slot is screened once (refgs.fast.tiles.slot_rows, the rows its chord reaches),
-  then visits those rows of the tile, and in each row its 16 pixels; every pixel keeps its own
+  loop: each slot is screened once (refgs.fast.tiles.slot_rows, the rows its chord reaches;
+  all of a tile's slots before the slot loop, refgs.fast.tiles.screen_slots), then visits those
+  rows of the tile, and in each row its 16 pixels; every pixel keeps its own
   T, colour, depth and done flag, so each pixel sees the slots in list order, which is the
   per-pixel front-to-back order of the spec.  The row's 16 pixels are 16 *lanes* computed
   without branches (every test a mask; every update an unconditional store of arithmetic that

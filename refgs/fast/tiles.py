@@ -21,7 +21,8 @@ padded for its own rounding.  A fragment outside its chord has computed o G < 1/
 factor exp(-SCREEN_MARGIN / 2), so skipping it changes nothing; fragments inside are evaluated
 exactly as the spec says.  Non-positive-definite conics and non-finite values get no screen. The
 compositing kernels take, per slot, the half rows (8 pixels) where the row's chord holds a pixel
-centre (:func:`slot_rows`, a 32-bit mask) and evaluate all lanes of those halves (the lanes
+centre (:func:`slot_rows`, a 32-bit mask; :func:`screen_slots` gives it for all of a tile's
+slots at once, across the slots) and evaluate all lanes of those halves (the lanes
 outside the chord fail the alpha test by the bound above; :func:`chords` keeps the columns too,
 for refgs.fast.ties).  Before any tile is composited, :func:`tile_alive` applies the same bound
 per Gaussian and tile of its rectangle, conservatively (q at its largest over the rectangle, every
