@@ -319,8 +319,9 @@ def _log_term(o):
 @njit(cache=True, inline="always", error_model="numpy")
 def _screen_values(mx, my, A, B, C, o, lg, x0, x1, y0, y1, eps, screen):
     """The screen's per-slot part (module docstring, Screen) on float64 scalars (``lg`` =
-    :func:`_log_term` of o), shared by :func:`chords`, :func:`slot_rows` and
-    :func:`tile_alive`: (verdict, det, q, r_lo, r_hi); verdict _SKIP (o G < 1/255 in the whole
+    :func:`_log_term` of o), shared by :func:`chords` and :func:`slot_rows` (:func:`screen_slots`
+    has the same arithmetic with its branches as selects, checked against slot_rows by
+    tests/test_fast.py): (verdict, det, q, r_lo, r_hi); verdict _SKIP (o G < 1/255 in the whole
     tile), _ALL_ROWS (no screen: switched off, odd conic or non-finite bound) or _SCREENED (rows
     r_lo..r_hi may hold a chord)."""
     T = TILE_SIZE
