@@ -461,7 +461,8 @@ def slot_rows(tab, s, x0, x1, y0, y1, ys, eps, screen):
     0 when o G < 1/255 in the whole tile; every bit without a screen (``screen`` False, odd
     conics, non-finite bounds); else the halves that hold a pixel centre of the row's chord (the
     columns of :func:`chords`).  x0, x1, y0, y1: the tile's first and last pixel centres
-    (float64); ys (16,) the row centres."""
+    (float64); ys (16,) the row centres.  The readable one-slot form: the compositing calls
+    :func:`screen_slots`, the same masks for a whole tile (tests/test_fast.py compares them)."""
     T = TILE_SIZE
     verdict, mx, my, A, B, C, det, q, r_lo, r_hi = _slot_screen(tab, s, x0, x1, y0, y1, eps,
                                                                screen)
