@@ -34,7 +34,9 @@ iteration.  The parent measures the machine in the same run, between the workers
 matrix product (``SGEMM_N`` squared, BLAS on every core) and a two-thread memory stream (copy,
 ``STREAM_BYTES``), best of ``LIMIT_REPEATS``.  The compute limit of an iteration is pairs x
 ``FLOPS_PER_PAIR`` / sgemm rate; the table gives each source's compositing time (forward +
-backward) and iteration time as multiples of it, and pairs per second.
+backward) and iteration time as multiples of it, and pairs per second.  The last row, the share
+of the iteration in the render stages (``RENDER_STAGES``), bounds what any work outside them can
+save: a run whose other phases cost nothing would take that share of its time.
 """
 from __future__ import annotations
 
@@ -84,6 +86,11 @@ KERNEL_PHASES = {
 PHASES = ("projection", "depth sort", "tile lists", "composite fwd", "composite bwd",
           "per-Gaussian bwd", "render glue", "backward glue", "SSIM", "loss glue", "Adam",
           "densify", "method hooks", "trainer glue", "other")
+#: the compiled per-Gaussian and compositing stages of the render and its backward (the row
+#: "share of the iteration in the render stages": what is left when every other phase -- loss,
+#: Adam, densification, method hooks, glue -- costs nothing)
+RENDER_STAGES = ("projection", "depth sort", "tile lists", "composite fwd", "composite bwd",
+                 "per-Gaussian bwd")
 #: hook names a method may have (the trainer calls them on ``trainer.method``)
 METHOD_HOOKS = ("render_request", "param_gradients", "frozen_rows", "after_densify", "after_step",
                 "before_render", "after_backward", "on_densify")
@@ -388,7 +395,10 @@ def table(run: Path, sources: list, results: dict, limits: list, pairs: float,
             ("pairs / s, compositing (M)", {n: f"{pairs / comp[n] / 1e3:.0f}" for n in names}),
             ("pairs / s, iteration (M)", {n: f"{pairs / wall[n] / 1e3:.0f}" for n in names}),
             ("compositing / compute limit", {n: f"{comp[n] / 1e3 / t_lim:.1f}x" for n in names}),
-            ("iteration / compute limit", {n: f"{wall[n] / 1e3 / t_lim:.1f}x" for n in names})]
+            ("iteration / compute limit", {n: f"{wall[n] / 1e3 / t_lim:.1f}x" for n in names}),
+            ("share of the iteration in the render stages",
+             {n: f"{sum(med[n][ph] for ph in RENDER_STAGES) / sum(med[n].values()):.0%}"
+              for n in names})]
     for label, vals in rows:
         lines.append(_row([label] + [vals[n] for n in names] + [""] * (len(names) - 1)))
     if kernels:
