@@ -279,7 +279,7 @@ def test_screen_is_exact():
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
 def test_screen_slots_is_slot_rows(dtype):
-    """refgs.fast.tiles.screen_slots (the screen across a tile's slots, branches as selects) gives
+    """refgs.fast.tiles.screen_slots (the screen across a tile's slots, in SIMD lanes) gives
     slot_rows' mask for every slot, bit for bit: slots inside, across and outside the tile, at
     its edges, opacities around 1/255 and 0, odd conics (negative, zero determinant, NaN, inf),
     non-finite means, and with the screen switched off."""

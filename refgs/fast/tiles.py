@@ -319,49 +319,49 @@ def _log_term(o):
 @njit(cache=True, inline="always", error_model="numpy")
 def _screen_values(mx, my, A, B, C, o, lg, x0, x1, y0, y1, eps, screen):
     """The screen's per-slot part (module docstring, Screen) on float64 scalars (``lg`` =
-    :func:`_log_term` of o), shared by :func:`chords` and :func:`slot_rows` (:func:`screen_slots`
-    has the same arithmetic with its branches as selects, checked against slot_rows by
-    tests/test_fast.py): (verdict, det, q, r_lo, r_hi); verdict _SKIP (o G < 1/255 in the whole
-    tile), _ALL_ROWS (no screen: switched off, odd conic or non-finite bound) or _SCREENED (rows
-    r_lo..r_hi may hold a chord)."""
-    T = TILE_SIZE
+    :func:`_log_term` of o): (verdict, det, q, r_lo, r_hi), all float64; verdict _SKIP (o G <
+    1/255 in the whole tile), _ALL_ROWS (no screen: switched off, odd conic or non-finite bound)
+    or _SCREENED (rows r_lo..r_hi, whole numbers, may hold a chord; r_lo, r_hi mean nothing for
+    the other verdicts).  Straight-line code, every choice a select, so that :func:`screen_slots`
+    runs it in SIMD lanes across a tile's slots; :func:`chords` and :func:`slot_rows` call it
+    per slot (:func:`_slot_screen`)."""
+    top = TILE_SIZE - 1.0
     det = A * C - B * B
-    if screen and o == 0.0:
-        return _SKIP, det, 0.0, 0, -1                   # alpha = 0 everywhere
-    dxm = max(abs(mx - x0), abs(mx - x1))
-    dym = max(abs(my - y0), abs(my - y1))
+    ax0, ax1 = abs(mx - x0), abs(mx - x1)
+    ay0, ay1 = abs(my - y0), abs(my - y1)
+    dxm = ax1 if ax1 > ax0 else ax0
+    dym = ay1 if ay1 > ay0 else ay0
     terms = abs(A) * dxm * dxm + abs(C) * dym * dym + 2.0 * abs(B) * dxm * dym
     q = lg + SCREEN_ULPS * eps * terms + SCREEN_MARGIN
-    if not screen or not (A > 0.0 and C > 0.0 and det > 0.0 and math.isfinite(det)
-                          and math.isfinite(q) and math.isfinite(mx) and math.isfinite(my)):
-        return _ALL_ROWS, det, q, 0, T - 1
-    if not q > 0.0:
-        return _SKIP, det, q, 0, -1                     # o G < 1/255 everywhere
+    finite = (det - det == 0.0) & (q - q == 0.0) & (mx - mx == 0.0) & (my - my == 0.0)
+    odd = (not screen) | (not ((A > 0.0) & (C > 0.0) & (det > 0.0) & finite))
     # rows where the chord can be non-empty: dy^2 (det - F (AC + B^2)) <= A q (1 + F)
     den = det - _F64_ULPS * (A * C + B * B)
-    r_lo, r_hi = 0, T - 1
-    if den > 0.0:
-        dy_max = math.sqrt(A * q * (1.0 + _F64_ULPS) / den) * (1.0 + _F64_ULPS) + _CHORD_PAD
-        ylo = my - dy_max - y0
-        yhi = my + dy_max - y0
-        if yhi < 0.0 or ylo > T - 1.0:
-            return _SKIP, det, q, 0, -1
-        r_lo = 0 if ylo <= 0.0 else int(math.ceil(ylo))
-        r_hi = T - 1 if yhi >= T - 1.0 else int(math.floor(yhi))
-    return _SCREENED, det, q, r_lo, r_hi
+    band = den > 0.0
+    dy_max = math.sqrt(A * q * (1.0 + _F64_ULPS) / den) * (1.0 + _F64_ULPS) + _CHORD_PAD
+    ylo = my - dy_max - y0
+    yhi = my + dy_max - y0
+    empty = (not (q > 0.0)) | (band & ((yhi < 0.0) | (ylo > top)))   # o G < 1/255 everywhere
+    verdict = _SKIP if (screen & (o == 0.0)) else (                  # alpha = 0 everywhere
+        _ALL_ROWS if odd else (_SKIP if empty else _SCREENED))
+    r_lo = math.ceil(ylo) if (band & (ylo > 0.0)) else 0.0
+    r_hi = math.floor(yhi) if (band & (yhi < top)) else top
+    return np.float64(verdict), det, q, np.float64(r_lo), np.float64(r_hi)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
 def _slot_screen(tab, s, x0, x1, y0, y1, eps, screen):
     """:func:`_screen_values` of list slot s of a tile's table: (verdict, mx, my, A, B, C, det, q,
-    r_lo, r_hi) in float64."""
+    r_lo, r_hi) in float64, r_lo and r_hi as ints (0, -1 unless _SCREENED)."""
     mx = np.float64(tab[s, 0]) + np.float64(tab[s, 10])     # the mean the lanes see
     my = np.float64(tab[s, 1]) + np.float64(tab[s, 11])
     A, B, C = np.float64(tab[s, 2]), np.float64(tab[s, 3]), np.float64(tab[s, 4])
     o = np.float64(tab[s, 5])
     verdict, det, q, r_lo, r_hi = _screen_values(mx, my, A, B, C, o, _log_term(o), x0, x1, y0, y1,
                                                  eps, screen)
-    return verdict, mx, my, A, B, C, det, q, r_lo, r_hi
+    if verdict != _SCREENED:
+        return verdict, mx, my, A, B, C, det, q, 0, -1
+    return verdict, mx, my, A, B, C, det, q, int(r_lo), int(r_hi)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -482,43 +482,26 @@ N_SCREEN_ROWS = 8
 def screen_slots(tab, L, x0, x1, y0, y1, ys, eps, screen, scr, out):
     """out[s] = :func:`slot_rows` (tab, s, ...) for every list slot s < L of a tile, bit for bit
     (tests/test_fast.py checks it), computed across the slots: the per-slot part of the screen
-    (:func:`_screen_values`) runs as lanes of 8 slots (float64 SIMD) -- every branch a select,
-    the verdict a number -- and only the row masks (:func:`_rows_keep`, itself vectorised over
+    (:func:`_screen_values`, straight-line code) runs as lanes of 8 slots (float64 SIMD), and
+    only the row masks (:func:`_rows_keep`, itself vectorised over
     the 16 rows) run slot by slot.  scr (N_SCREEN_ROWS, >= L) float64 is caller-owned scratch.
     The log of the opacity term is a library call, so it has a loop of its own."""
     T = TILE_SIZE
-    top = T - 1.0
     for s in range(L):
         scr[_SC_LG, s] = _log_term(np.float64(tab[s, 5]))
-    for s in range(L):              # lanes: one basic block, the branches of _screen_values
-        mx = np.float64(tab[s, 0]) + np.float64(tab[s, 10])     # as selects, same arithmetic
+    for s in range(L):              # lanes: _screen_values is one basic block
+        mx = np.float64(tab[s, 0]) + np.float64(tab[s, 10])
         my = np.float64(tab[s, 1]) + np.float64(tab[s, 11])
-        A, B, C = np.float64(tab[s, 2]), np.float64(tab[s, 3]), np.float64(tab[s, 4])
-        o = np.float64(tab[s, 5])
-        det = A * C - B * B
-        ax0, ax1 = abs(mx - x0), abs(mx - x1)
-        ay0, ay1 = abs(my - y0), abs(my - y1)
-        dxm = ax1 if ax1 > ax0 else ax0
-        dym = ay1 if ay1 > ay0 else ay0
-        terms = abs(A) * dxm * dxm + abs(C) * dym * dym + 2.0 * abs(B) * dxm * dym
-        q = scr[_SC_LG, s] + SCREEN_ULPS * eps * terms + SCREEN_MARGIN
-        finite = (det - det == 0.0) & (q - q == 0.0) & (mx - mx == 0.0) & (my - my == 0.0)
-        odd = (not screen) | (not ((A > 0.0) & (C > 0.0) & (det > 0.0) & finite))
-        den = det - _F64_ULPS * (A * C + B * B)
-        band = den > 0.0
-        dy_max = math.sqrt(A * q * (1.0 + _F64_ULPS) / den) * (1.0 + _F64_ULPS) + _CHORD_PAD
-        ylo = my - dy_max - y0
-        yhi = my + dy_max - y0
-        empty = (not (q > 0.0)) | (band & ((yhi < 0.0) | (ylo > top)))
-        verdict = _SKIP if (screen & (o == 0.0)) else (
-            _ALL_ROWS if odd else (_SKIP if empty else _SCREENED))
+        verdict, det, q, r_lo, r_hi = _screen_values(
+            mx, my, np.float64(tab[s, 2]), np.float64(tab[s, 3]), np.float64(tab[s, 4]),
+            np.float64(tab[s, 5]), scr[_SC_LG, s], x0, x1, y0, y1, eps, screen)
         scr[_SC_MX, s] = mx
         scr[_SC_MY, s] = my
         scr[_SC_DET, s] = det
         scr[_SC_Q, s] = q
-        scr[_SC_RLO, s] = math.ceil(ylo) if (band & (ylo > 0.0)) else 0.0
-        scr[_SC_RHI, s] = math.floor(yhi) if (band & (yhi < top)) else top
-        scr[_SC_VERDICT, s] = np.float64(verdict)
+        scr[_SC_RLO, s] = r_lo
+        scr[_SC_RHI, s] = r_hi
+        scr[_SC_VERDICT, s] = verdict
     for s in range(L):
         verdict = scr[_SC_VERDICT, s]
         if verdict == _SKIP:
