@@ -14,6 +14,7 @@ import pytest
 
 import refgs
 from refgs.cli import main
+from refgs.train.checkpoint import FLOAT_ENV_FIELDS
 
 DATA = Path(os.environ.get("REFGS_DATA", Path(__file__).resolve().parents[1] / ".." / "shared" / "data"))
 FERN = DATA / "fern"
@@ -210,8 +211,14 @@ def test_run_directory_contents(tiny_run):
     assert cfg["test_images"] == ["v00.png", "v08.png"]
     assert cfg["settings"]["iters"] == 20 and cfg["settings"]["densify"]["interval"] == 4
     assert cfg["n_init_points"] == TINY_POINTS
-    for key in ("git_hash", "packages", "cpu", "cpu_count"):
+    for key in ("git_hash", "packages", "cpu", "cpu_count", "float_environment"):
         assert key in cfg["provenance"]
+    # TRN-13: the float environment says what the run's bytes can be compared with
+    env = cfg["provenance"]["float_environment"]
+    assert set(env) == set(FLOAT_ENV_FIELDS) and env["numpy"] == np.__version__
+    from numpy._core._multiarray_umath import __cpu_baseline__, __cpu_dispatch__, __cpu_features__
+    assert env["numpy_simd"] in (*__cpu_dispatch__, *__cpu_baseline__)
+    assert __cpu_features__[env["numpy_simd"]]                  # a level this CPU runs
     m = json.loads((tiny_run / "metrics.json").read_text())
     for key in ("psnr", "ssim", "ssim_skimage", "lpips_vgg", "lpips_vgg_official", "lpips_alex",
                 "n_gaussians", "n_init_points", "iterations", "train_seconds", "peak_rss_gb", "per_view"):

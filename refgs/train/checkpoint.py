@@ -102,6 +102,58 @@ def cpu_name() -> str:
     return platform.processor() or platform.machine()
 
 
+#: The float-environment fields that decide the bytes of a float computation on one machine
+#: (docs/spec/training.md TRN-13): numpy's ufunc dispatch level, its BLAS kernel, the CPU that
+#: numba compiles for. Two machines that agree on all of them give the same bytes.
+FLOAT_ENV_FIELDS = ("numpy", "numpy_simd", "blas", "numba_cpu")
+
+
+def numpy_simd_level() -> str:
+    """The highest of numpy's dispatch targets (``__cpu_dispatch__``: X86_V3 = AVX2, X86_V4 =
+    AVX-512, ...) this CPU runs, else numpy's baseline; what ``np.show_runtime()`` calls found."""
+    try:
+        from numpy._core._multiarray_umath import (__cpu_baseline__, __cpu_dispatch__,
+                                                   __cpu_features__)
+    except ImportError:                                    # numpy < 2
+        from numpy.core._multiarray_umath import (__cpu_baseline__, __cpu_dispatch__,
+                                                  __cpu_features__)
+    found = [t for t in __cpu_dispatch__ if __cpu_features__.get(t)]
+    return found[-1] if found else (__cpu_baseline__[-1] if __cpu_baseline__ else "none")
+
+
+def blas_kernel() -> str | None:
+    """numpy's BLAS and the kernel set it chose at run time (e.g. "openblas 0.3.31 Haswell"),
+    read by threadpoolctl; None when it cannot tell."""
+    try:
+        from threadpoolctl import threadpool_info
+    except ImportError:
+        return None
+    for lib in threadpool_info():
+        if lib.get("user_api") == "blas" and "numpy" in str(lib.get("filepath", "")):
+            return " ".join(str(lib.get(k)) for k in ("internal_api", "version", "architecture"))
+    return None
+
+
+def numba_cpu() -> str | None:
+    """The CPU numba compiles the fast backend for (``NUMBA_CPU_NAME``, else LLVM's host CPU),
+    None without llvmlite."""
+    import importlib.util
+    if os.environ.get("NUMBA_CPU_NAME"):
+        return os.environ["NUMBA_CPU_NAME"]
+    if importlib.util.find_spec("llvmlite") is None:
+        return None
+    from llvmlite import binding
+    return binding.get_host_cpu_name()
+
+
+def float_environment() -> dict:
+    """The machine facts that decide float bytes (FLOAT_ENV_FIELDS): a record is comparable bit
+    for bit only with records of the same float environment (TRN-13)."""
+    import numpy
+    return {"numpy": numpy.__version__, "numpy_simd": numpy_simd_level(),
+            "blas": blas_kernel(), "numba_cpu": numba_cpu()}
+
+
 def peak_rss_gb() -> float:
     """This process's peak resident memory in GB (``ru_maxrss``: KiB on Linux, bytes on macOS)."""
     import resource
@@ -123,7 +175,8 @@ def source_hash() -> str:
 
 def provenance() -> dict:
     """git hash (None outside a git checkout / before the first commit), dirty flag, package
-    versions, CPU, thread settings, Python and platform (recorded in config.json)."""
+    versions, CPU and its float environment (SIMD level, BLAS kernel), thread settings, Python and
+    platform (recorded in config.json)."""
     from importlib import metadata
 
     root = Path(__file__).resolve().parents[2]
@@ -148,6 +201,7 @@ def provenance() -> dict:
         "platform": platform.platform(),
         "cpu": cpu_name(),
         "cpu_count": os.cpu_count(),
+        "float_environment": float_environment(),
         "threads_available": affinity,
         "thread_env": {k: os.environ.get(k) for k in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS",
                                                         "MKL_NUM_THREADS")},
@@ -155,4 +209,5 @@ def provenance() -> dict:
 
 
 __all__ = ["save_checkpoint", "load_checkpoint", "provenance", "source_hash", "peak_rss_gb",
-           "cpu_name", "rng_state", "rng_from_state", "CheckpointError", "CHECKPOINT_VERSION"]
+           "cpu_name", "float_environment", "numpy_simd_level", "blas_kernel", "numba_cpu",
+           "FLOAT_ENV_FIELDS", "rng_state", "rng_from_state", "CheckpointError", "CHECKPOINT_VERSION"]
