@@ -55,7 +55,7 @@ from ..backends import BackendUnavailable, get_backend
 from ..errors import ConfigError
 from ..io.atomic import atomic_write_json, atomic_write_text
 from ..synthetic import benchmark_scene
-from ..train.checkpoint import cpu_name, peak_rss_gb
+from ..train.checkpoint import cpu_name, float_environment, peak_rss_gb
 from ..types import RenderConfig
 
 DEFAULT_NS = (1_000, 10_000, 50_000, 200_000)
@@ -267,7 +267,7 @@ def bench_scene(label, n, size, g64, cam, backends, repeats: int, profile: str) 
 def machine_info() -> dict:
     info = {"machine": platform.machine(), "cpu": cpu_name(), "cpus": os.cpu_count(),
             "python": platform.python_version(), "numpy": np.__version__,
-            "loadavg_before": list(os.getloadavg())}
+            "float_environment": float_environment(), "loadavg_before": list(os.getloadavg())}
     try:
         import numba
         info["numba"], info["numba_threads"] = numba.__version__, numba.get_num_threads()
