@@ -1,6 +1,7 @@
-"""The main campaign's table (refgs.analysis.campaign), its qualitative figure
-(refgs.analysis.qualitative) and the flatness curves over seeds (refgs.analysis.flatness), on
-made-up records, renders and flatness files (FM-12, FM-14, FM-15, FM-16)."""
+"""The reports of experiments/paper_main.toml and paper_followups.toml (refgs.analysis.report,
+declared by their [report] tables), the qualitative figure (refgs.analysis.qualitative) and the
+flatness curves over seeds (refgs.analysis.flatness), on made-up records, renders and flatness
+files (FM-12, FM-14, FM-15, FM-16)."""
 from __future__ import annotations
 
 import json
@@ -13,15 +14,36 @@ from PIL import Image
 from scipy import stats
 
 from refgs.analysis import qualitative
-from refgs.analysis.campaign import (MISSING, NO_PAIRS, campaign_markdown, load_campaign,
-                                     made_by_campaign)
-from refgs.analysis.campaign_compute import compute_markdown, segments, union_seconds
+from refgs.analysis.cost import cost_markdown, segments, union_seconds
 from refgs.analysis.figures import make_figures
 from refgs.analysis.flatness import curve_key, group_over_seeds
+from refgs.analysis.flatness_drops import flatness_markdown
+from refgs.analysis.report import (SUMMARY_MARKERS, load_runs, markers, report_markdown,
+                                   reports_beside, split_document)
+from refgs.analysis.report_spec import load_report, made_by
+from refgs.analysis.report_tables import MISSING, NO_PAIRS, paper_table
 from refgs.analysis.stats import runs_needed
-from refgs.analysis.summary import (BEGIN_MARKER, END_MARKER, MAIN_BEGIN, MAIN_END, main,
-                                    main_markdown, split_document, summary_markdown)
+from refgs.analysis.summary import summary_markdown
+from refgs.cli import main as refgs_main
 from refgs.errors import ConfigError
+
+EXPERIMENTS = Path(__file__).resolve().parents[1] / "experiments"
+MAIN = load_report(EXPERIMENTS / "paper_main.toml")
+FOLLOWUPS = load_report(EXPERIMENTS / "paper_followups.toml")
+#: The training code the main campaign accepts first.
+CODE = MAIN.code[0]
+
+
+def campaign_markdown(root: Path) -> str:
+    return report_markdown(MAIN, root)
+
+
+def followups_markdown(root: Path) -> str:
+    return report_markdown(FOLLOWUPS, root)
+
+
+def load_campaign(root: Path):
+    return load_runs(root, MAIN)
 
 GRID_COMMAND = ["refgs", "run-one", "/elsewhere/repo/experiments/paper_main.toml", "--out",
                 "/elsewhere/repo/runs/paper_main", "--name"]
@@ -33,10 +55,13 @@ def write_record(root: Path, scene="fern", views=3, method="fm", seed=0, psnr=20
     folder = root / name
     folder.mkdir(parents=True)
     s = {"scene": f"/data/{scene}", "views": views, "iters": 10000, "seed": seed, "method": method,
-         "method_params": {}, "backend": "fast", "images": "images_8", **settings}
+         "method_params": {}, "backend": "fast", "images": "images_8", "checkpoint_every": 500,
+         **settings}
     cmd = GRID_COMMAND + [name] if command is None else command
-    (folder / "config.json").write_text(json.dumps({"command": cmd, "settings": s,
-                                                    "started": "2026-12-05T10:00:00+0000"}))
+    config = {"command": cmd, "settings": s, "started": "2026-12-05T10:00:00+0000"}
+    if command is None:                           # the main grid's run, by code it accepts
+        config["provenance"] = {"source_hash": CODE}
+    (folder / "config.json").write_text(json.dumps(config))
     (folder / "metrics.json").write_text(json.dumps({"psnr": psnr, "ssim": ssim, "lpips_vgg": lpips}))
     (folder / "history.json").write_text(json.dumps({"iter_seconds": [1.0] * 60}))
     return folder
@@ -129,10 +154,10 @@ def test_only_records_of_the_grid_count(tmp_path):
     write_record(tmp_path, method="3dgs", command=other)
     write_record(tmp_path, method="dropgaussian", command=["refgs", "train", "--scene", "s"])
     assert [r.record for r in load_campaign(tmp_path)] == ["fern_v3_fm_s0"]
-    assert made_by_campaign({"command": GRID_COMMAND + ["n"]})
-    assert not made_by_campaign({"command": None}) and not made_by_campaign({})
+    assert made_by({"command": GRID_COMMAND + ["n"]}, MAIN)
+    assert not made_by({"command": None}, MAIN) and not made_by({}, MAIN)
     # the summary families keep the others and leave the campaign's record to its own block
-    md = summary_markdown(tmp_path)
+    md = summary_markdown(tmp_path, reports=[MAIN])
     assert "fern_v3_3dgs_s0" in md and "fern_v3_dropgaussian_s0" in md
     assert "fern_v3_fm_s0" not in md
 
@@ -164,22 +189,24 @@ def test_grid_records_outside_the_campaign_are_refused(tmp_path):
 def test_update_rewrites_both_blocks(records, capsys):
     root, _ = records
     doc = root.parent / "doc.md"
-    doc.write_text(f"# T\n\n{MAIN_BEGIN}\nold\n{MAIN_END}\n\nmid\n\n{BEGIN_MARKER}\nold\n"
-                   f"{END_MARKER}\n")
-    assert main([str(root), "--update", str(doc)]) == 0
+    begin, end = markers(MAIN)
+    doc.write_text(f"# T\n\n{begin}\nold\n{end}\n\nmid\n\n{SUMMARY_MARKERS[0]}\nold\n"
+                   f"{SUMMARY_MARKERS[1]}\n")
+    grid = str(MAIN.grid)
+    assert refgs_main(["report", grid, "--records", str(root), "--update", str(doc)]) == 0
     text = doc.read_text()
-    block = split_document(text, begin=MAIN_BEGIN, end=MAIN_END)[1].strip()
-    assert block == main_markdown(root).strip()
-    assert block.startswith(campaign_markdown(root).strip())
-    assert "### Flatness over training seeds" in block
-    assert split_document(text)[1].strip() == summary_markdown(root).strip()
-    assert main([str(root), "--main"]) == 0
-    assert capsys.readouterr().out == main_markdown(root)
+    block = split_document(text, "doc", begin, end)[1].strip()
+    assert block == campaign_markdown(root).strip()
+    assert "### Flatness over training seeds" in block and "### Beside the paper" in block
+    summary = split_document(text, "doc", *SUMMARY_MARKERS)[1].strip()
+    assert summary == summary_markdown(root, reports=reports_beside([grid])).strip()
+    assert refgs_main(["report", grid, "--records", str(root)]) == 0
+    assert capsys.readouterr().out == campaign_markdown(root)
 
 
 def test_compute_segments_follow_the_resumes_and_the_wall_time_counts_overlaps_once(tmp_path):
     """A resumed run is one segment per start, each as long as its iterations' seconds; the wall
-    time is the union of every run's segments (refgs.analysis.campaign_compute)."""
+    time is the union of every run's segments (refgs.analysis.cost)."""
     config = {"started": "2026-12-05T10:00:00+0000",
               "resumes": [{"from_iteration": 3, "time": "2026-12-05T12:00:00+0000"}]}
     segs = segments(config, {"iter_seconds": [10.0, 20.0, 30.0, 5.0, 5.0]}, "run")
@@ -196,7 +223,7 @@ def test_compute_segments_follow_the_resumes_and_the_wall_time_counts_overlaps_o
 
 def test_compute_table_sums_the_loops(records):
     root, _ = records
-    md = compute_markdown(root, load_campaign(root))
+    md = cost_markdown(root, load_campaign(root), MAIN.groups, MAIN.methods, MAIN.cost_note)
     cells = rows(md, "scene")
     assert cells[("fern", "3", "fm")][3:5] == ["3", "1.0; 1.0-1.0"]
     # 11 runs of 1 minute, all started at the same time: 11 minutes of compute, 1 of wall time
@@ -336,7 +363,7 @@ def test_flatness_over_seeds_without_run_info_and_errors(tmp_path):
         make_figures([tmp_path], out=tmp_path / "o", over_seeds=True)
 
 
-# --- the flatness over training seeds (refgs.analysis.campaign_flatness) -----------------------
+# --- the flatness over training seeds (refgs.analysis.flatness_drops) -------------------------
 def write_flatness(root: Path, name: str, curves: dict, settings="flatness") -> Path:
     """A flatness record: curves {campaign run name: (test means, train means)} over gamma 0, 1."""
     folder = root / name
@@ -355,7 +382,6 @@ def write_flatness(root: Path, name: str, curves: dict, settings="flatness") -> 
 
 
 def test_flatness_table_means_drops_and_paired_difference(records):
-    from refgs.analysis.campaign_flatness import flatness_markdown
     root, _ = records
     fm_drop, base_drop = [0.3, 0.5, 0.2], [1.5, 2.0, 1.9]
     curves = {}
@@ -367,7 +393,7 @@ def test_flatness_table_means_drops_and_paired_difference(records):
     write_flatness(root, "flat_b", {k: v for k, v in curves.items() if not k.endswith("s0")})
     write_flatness(root, "flat_training", {"fern_v3_dropgaussian_s0": ([20.0, 19.0], [30.0, 29.0])},
                    settings="training")                            # other settings: left out
-    md = flatness_markdown(root, load_campaign(root))
+    md = flatness_markdown(root, MAIN, load_campaign(root))
     means = rows(md, "scene | views | method | n | test")
     fm = means[("fern", "3", "fm")]
     assert fm[3] == "3" and fm[4] == "21.00"
@@ -383,31 +409,28 @@ def test_flatness_table_means_drops_and_paired_difference(records):
 
 
 def test_flatness_table_refuses_two_curves_of_one_run(records):
-    from refgs.analysis.campaign_flatness import flatness_markdown
     root, _ = records
     write_flatness(root, "flat_a", {"fern_v3_fm_s0": ([21.0, 20.0], [30.0, 26.0])})
     write_flatness(root, "flat_b", {"fern_v3_fm_s0": ([21.0, 20.5], [30.0, 26.0])})
     with pytest.raises(ConfigError, match="fern_v3_fm_s0 also has a curve in flat_a"):
-        flatness_markdown(root, load_campaign(root))
+        flatness_markdown(root, MAIN, load_campaign(root))
 
 
 def test_paper_table_sets_our_means_beside_the_papers(records):
-    from refgs.analysis.campaign_paper import PAPER, paper_markdown
     root, psnr = records
-    md = paper_markdown(load_campaign(root))
+    md = paper_table(MAIN, load_campaign(root))
     fern = rows(md, "scene | paper's mean over")
     row = fern[("fern 3-view", "LLFF 3-view, mean of 8 scenes", "PSNR")]
-    paper = PAPER[("fern", 3)][1]
+    paper = MAIN.quotes[0].values
     assert row[3] == "3/3/3"
     assert row[6] == f"{np.mean(psnr['fm']):.2f} / {paper['fm'][0]:.2f}"
     assert row[7] == f"{np.mean(psnr['fm']) - np.mean(psnr['3dgs']):+.2f} / " \
                      f"{paper['fm'][0] - paper['3dgs'][0]:+.2f}"
     bonsai = fern[("bonsai 12-view", "Mip-NeRF 360 12-view, mean of 9 scenes", "LPIPS-VGG")]
-    assert bonsai[3] == "0/0/0" and bonsai[4] == f"- / {PAPER[('bonsai', 12)][1]['3dgs'][2]:.3f}"
+    assert bonsai[3] == "0/0/0" and bonsai[4] == f"- / {MAIN.quotes[1].values['3dgs'][2]:.3f}"
 
 
 def test_runs_of_the_campaign_code_outside_the_grid_have_their_own_family(tmp_path):
-    from refgs.analysis.campaign import CAMPAIGN_SOURCE_HASHES
     root = tmp_path / "records"
     older = write_record(root, method="3dgs", seed=2, psnr=19.3, command=["refgs", "train"],
                          dtype="float64")
@@ -415,34 +438,32 @@ def test_runs_of_the_campaign_code_outside_the_grid_have_their_own_family(tmp_pa
                         dtype="float64")
     ours = ours.rename(root / "fern_v3_3dgs_f64_s0")
     cfg = json.loads((ours / "config.json").read_text())
-    cfg["provenance"] = {"source_hash": CAMPAIGN_SOURCE_HASHES[0]}
+    cfg["provenance"] = {"source_hash": CODE}
     (ours / "config.json").write_text(json.dumps(cfg))
-    md = summary_markdown(root)
+    md = summary_markdown(root, reports=[MAIN])
     own = md.split("### Made by the campaign's code, outside its grid", 1)[1].split("###", 1)[0]
     assert "| fern | 3 | 3dgs, float64 | 0 | 19.55 |" in own and older.name not in own
     fern = md.split("### Fern, 3 views", 1)[1]
     assert f"`{older.name}`" in fern and "fern_v3_3dgs_f64_s0" not in fern
 
 
-# --- the follow-ups: ablations and more views (refgs.analysis.campaign_followups) ------------------
+# --- the follow-ups: ablations and more views (experiments/paper_followups.toml) -----------------
 FOLLOWUP_COMMAND = ["refgs", "run-one", "/elsewhere/repo/experiments/paper_followups.toml", "--out",
                     "/elsewhere/repo/runs/paper_followups", "--name"]
 
 
 def write_followup(root: Path, name: str, source_hash=None, **kw) -> Path:
     """A follow-up record named ``name``, made by the campaign's code unless ``source_hash``."""
-    from refgs.analysis.campaign import CAMPAIGN_SOURCE_HASHES
     tmp = write_record(root / ".new", command=FOLLOWUP_COMMAND + [name], **kw)
     folder = tmp.rename(root / name)
     tmp.parent.rmdir()
     cfg = json.loads((folder / "config.json").read_text())
-    cfg["provenance"] = {"source_hash": source_hash or CAMPAIGN_SOURCE_HASHES[0]}
+    cfg["provenance"] = {"source_hash": source_hash or FOLLOWUPS.code[0]}
     (folder / "config.json").write_text(json.dumps(cfg))
     return folder
 
 
 def test_followups_pair_ablations_with_the_campaigns_fm_and_views_by_seed(records, capsys):
-    from refgs.analysis.campaign_followups import followups_markdown
     root, psnr = records
     noreinit = [20.5, 20.9, 20.2]
     for seed in range(3):
@@ -472,8 +493,10 @@ def test_followups_pair_ablations_with_the_campaigns_fm_and_views_by_seed(record
     fm3, _ = ci_text([a - b for a, b in zip(psnr["fm"], psnr["3dgs"])], 2)
     assert diffs[("fern", "3", "FM − 3DGS")][4] == fm3          # the main campaign's records
     # the summary families leave them to this block; the command prints it
-    assert "fern_v6_fm_s0" not in summary_markdown(root)
-    assert main([str(root), "--followups"]) == 0 and capsys.readouterr().out == md
+    assert "fern_v6_fm_s0" not in summary_markdown(root, reports=[MAIN, FOLLOWUPS])
+    grid = str(FOLLOWUPS.grid)
+    assert refgs_main(["report", grid, "--records", str(root)]) == 0
+    assert capsys.readouterr().out == md
 
 
 def mean_sd(values):
@@ -482,14 +505,13 @@ def mean_sd(values):
 
 
 def test_followups_refuse_other_cells_and_other_code(tmp_path):
-    from refgs.analysis.campaign_followups import followups_markdown
     write_followup(tmp_path, "fern_v3_3dgs_s0", method="3dgs")     # 3 views: ablations only
     with pytest.raises(ConfigError, match=r"fern_v3_3dgs_s0/config\.json: made by "
-                                          r"experiments/paper_followups\.toml .* not one of"):
+                                          r"experiments/paper_followups\.toml .* not a cell"):
         followups_markdown(tmp_path)
     shutil.rmtree(tmp_path / "fern_v3_3dgs_s0")
     write_followup(tmp_path, "fern_v9_fm_s0", views=9, source_hash="0000000000000000")
-    with pytest.raises(ConfigError, match="source hash 0000000000000000 is not the main"):
+    with pytest.raises(ConfigError, match="source hash 0000000000000000 is not one the grid"):
         followups_markdown(tmp_path)
     shutil.rmtree(tmp_path / "fern_v9_fm_s0")
     write_followup(tmp_path, "a", views=9)
@@ -499,15 +521,14 @@ def test_followups_refuse_other_cells_and_other_code(tmp_path):
 
 
 def test_update_rewrites_the_followups_block(records):
-    from refgs.analysis.campaign_followups import followups_markdown
-    from refgs.analysis.summary import FOLLOWUPS_BEGIN, FOLLOWUPS_END
     root, _ = records
     write_followup(root, "fern_v9_fm_s0", views=9, psnr=26.0)
     doc = root.parent / "doc.md"
-    doc.write_text(f"# t\n{BEGIN_MARKER}\nold\n{END_MARKER}\n{FOLLOWUPS_BEGIN}\nstale\n"
-                   f"{FOLLOWUPS_END}\nend\n")
-    assert main([str(root), "--update", str(doc)]) == 0
+    begin, end = markers(FOLLOWUPS)
+    doc.write_text(f"# t\n{SUMMARY_MARKERS[0]}\nold\n{SUMMARY_MARKERS[1]}\n{begin}\nstale\n"
+                   f"{end}\nend\n")
+    assert refgs_main(["report", str(FOLLOWUPS.grid), "--records", str(root), "--update",
+                       str(doc)]) == 0
     text = doc.read_text()
-    assert split_document(text, "doc", FOLLOWUPS_BEGIN, FOLLOWUPS_END)[1].strip() == \
-        followups_markdown(root).strip()
+    assert split_document(text, "doc", begin, end)[1].strip() == followups_markdown(root).strip()
     assert "stale" not in text and text.endswith("end\n")

@@ -1,6 +1,8 @@
-"""docs/results.md's summary tables and main-campaign block are exactly what
-refgs.analysis.summary builds from the committed records (FM-15), and the builder computes, marks
-and refuses what it should (the campaign block on made-up records: test_campaign_analysis.py)."""
+"""docs/results.md's blocks are exactly what the builders make from the committed records (FM-15):
+each reported grid's block (refgs.analysis.report, every experiments/*.toml with a [report]
+table) and the summary of the other records (refgs.analysis.summary); the summary builder
+computes, marks and refuses what it should (the grids' blocks on made-up records:
+test_campaign_analysis.py, test_report.py)."""
 from __future__ import annotations
 
 import json
@@ -9,41 +11,45 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from refgs.analysis.campaign_followups import followups_markdown
-from refgs.analysis.summary import (BEGIN_MARKER, END_MARKER, FOLLOWUPS_BEGIN, FOLLOWUPS_END,
-                                    MAIN_BEGIN, MAIN_END,
-                                    default_unrecorded, load_records, main, main_markdown,
-                                    split_document,
-                                    summary_markdown, with_block)
+from refgs.analysis.report import (SUMMARY_MARKERS, markers, report_markdown, reports_beside,
+                                   split_document, with_block)
+from refgs.analysis.report_spec import load_report
+from refgs.analysis.summary import default_unrecorded, load_records, summary_markdown
+from refgs.cli import main as refgs_main
 from refgs.errors import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
 RECORDS = ROOT / "results" / "records"
 DOC = ROOT / "docs" / "results.md"
-UPDATE = "python -m refgs.analysis.summary results/records --update docs/results.md"
+GRIDS = sorted((ROOT / "experiments").glob("*.toml"))
+REPORTS = reports_beside(GRIDS)
+UPDATE = ("refgs report " + " ".join(f"experiments/{r.grid.name}" for r in REPORTS)
+          + " --records results/records --update docs/results.md")
 
 
 def test_results_doc_summary_is_generated_from_the_records():
-    _, block, _ = split_document(DOC.read_text(encoding="utf-8"), str(DOC))
-    expected = summary_markdown(RECORDS, default_unrecorded(RECORDS))
+    _, block, _ = split_document(DOC.read_text(encoding="utf-8"), str(DOC), *SUMMARY_MARKERS)
+    expected = summary_markdown(RECORDS, default_unrecorded(RECORDS), REPORTS)
     assert block.strip() == expected.strip(), f"docs/results.md is out of date; run: {UPDATE}"
 
 
-def test_results_doc_main_block_is_generated_from_the_records():
-    text = DOC.read_text(encoding="utf-8")
-    _, block, _ = split_document(text, str(DOC), MAIN_BEGIN, MAIN_END)
-    assert block.strip() == main_markdown(RECORDS).strip(), \
-        f"docs/results.md is out of date; run: {UPDATE}"
-    # near the top: before the summary block
-    assert text.index(MAIN_END) < text.index(BEGIN_MARKER)
+def test_the_experiments_with_a_report():
+    assert {r.marker for r in REPORTS} >= {"main", "followups"}
 
 
-def test_results_doc_followups_block_is_generated_from_the_records():
+@pytest.mark.parametrize("report", REPORTS, ids=lambda r: r.grid.name)
+def test_results_doc_block_of_every_reported_grid_is_generated_from_the_records(report):
     text = DOC.read_text(encoding="utf-8")
-    _, block, _ = split_document(text, str(DOC), FOLLOWUPS_BEGIN, FOLLOWUPS_END)
-    assert block.strip() == followups_markdown(RECORDS).strip(), \
+    _, block, _ = split_document(text, str(DOC), *markers(report))
+    assert block.strip() == report_markdown(report, RECORDS).strip(), \
         f"docs/results.md is out of date; run: {UPDATE}"
-    assert text.index(MAIN_END) < text.index(FOLLOWUPS_BEGIN) < text.index(BEGIN_MARKER)
+    # the grids' blocks come before the summary
+    assert text.index(markers(report)[1]) < text.index(SUMMARY_MARKERS[0])
+
+
+def test_results_doc_block_order():
+    text = DOC.read_text(encoding="utf-8")
+    assert text.index("<!-- main:end -->") < text.index("<!-- followups:begin -->")
 
 
 def test_every_record_is_in_the_results_doc():
@@ -174,18 +180,24 @@ def test_bad_records_name_the_file(tmp_path):
 def test_markers_and_update(tmp_path, capsys):
     write_run(tmp_path / "rec", "fern3_fm_s0")
     doc = tmp_path / "doc.md"
-    doc.write_text(f"# T\n\nintro\n\n{BEGIN_MARKER}\nold table\n{END_MARKER}\n\noutro\n")
-    assert main([str(tmp_path / "rec"), "--update", str(doc)]) == 0
+    begin, end = SUMMARY_MARKERS
+    doc.write_text(f"# T\n\nintro\n\n{begin}\nold table\n{end}\n\noutro\n")
+    grid = tmp_path / "g.toml"
+    grid.write_text('scene = "s"\nviews = 3\niters = 10\n\n[report]\ntitle = "G"\n')
+    doc.write_text(doc.read_text() + "<!-- g:begin -->\n<!-- g:end -->\n")
+    assert refgs_main(["report", str(grid), "--records", str(tmp_path / "rec"), "--update",
+                       str(doc)]) == 0
     text = doc.read_text()
-    assert "old table" not in text and text.startswith("# T\n\nintro\n\n") and text.endswith("outro\n")
-    _, block, _ = split_document(text)
+    assert "old table" not in text and text.startswith("# T\n\nintro\n\n")
+    assert text.endswith("outro\n<!-- g:begin -->\n\n" + report_markdown(
+        load_report(grid), tmp_path / "rec").strip() + "\n\n<!-- g:end -->\n")
+    _, block, _ = split_document(text, "doc", begin, end)
     assert block.strip() == summary_markdown(tmp_path / "rec").strip()
-    assert with_block(text, summary_markdown(tmp_path / "rec")) == text      # idempotent
-    assert main([str(tmp_path / "rec")]) == 0
-    assert capsys.readouterr().out == summary_markdown(tmp_path / "rec")
+    assert with_block(text, summary_markdown(tmp_path / "rec"), "doc", begin, end) == text
     doc.write_text("no markers\n")
-    assert main([str(tmp_path / "rec"), "--update", str(doc)]) == 2
-    assert "expected one <!-- summary:begin -->" in capsys.readouterr().err
+    assert refgs_main(["report", str(grid), "--records", str(tmp_path / "rec"), "--update",
+                       str(doc)]) == 2
+    assert "expected one <!-- g:begin -->" in capsys.readouterr().err
     assert doc.read_text() == "no markers\n"
     with pytest.raises(ConfigError, match="comes before"):
-        split_document(f"{END_MARKER}\n{BEGIN_MARKER}\n")
+        split_document(f"{end}\n{begin}\n", "doc", begin, end)

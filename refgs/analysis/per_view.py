@@ -26,7 +26,7 @@ import numpy as np
 
 from ..errors import ConfigError, RefgsError
 from ..runs import CONFIG_FILE, METRICS_FILE
-from .campaign import diff_cells
+from .report_tables import diff_cells
 from .stats import CONFIDENCE, paired_stats
 from .tables import method_label, read_run_json
 

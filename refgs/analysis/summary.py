@@ -1,7 +1,4 @@
-"""The summary tables of docs/results.md, built from the committed records (FM-13, FM-15).
-
-    python -m refgs.analysis.summary results/records [--unrecorded FILE] [--main | --followups]
-                                     [--update docs/results.md]
+"""The summary tables of docs/results.md: the records no reported grid claims (FM-13, FM-15).
 
 Reads every record folder of ``results/records/`` (``refgs record``): a run's ``config.json``
 (scene, views, iterations, method and its parameters, seed) and ``metrics.json`` (the test-view
@@ -18,24 +15,13 @@ Runs that were reported before records existed are listed, without numbers, in a
 ``views``, ``iters``, ``method`` (a method label), ``seeds`` (text) and ``note``; each becomes a
 row marked "no record".  Every number printed comes from a record.
 
-The records of the main campaign (``refgs.analysis.campaign``: made by the grid
-experiments/paper_main.toml) are left out of the families; they make their own block
-(``main_markdown``: ``campaign.campaign_markdown`` and the flatness over training seeds of
-``campaign_flatness.flatness_markdown``), printed with ``--main``; so do those of its
-follow-ups (``campaign_followups``: the grid experiments/paper_followups.toml), printed with
-``--followups``.
-
-The output is Markdown; in docs/results.md the summary sits between ``BEGIN_MARKER`` and
-``END_MARKER``, the campaign block between ``MAIN_BEGIN`` and ``MAIN_END``, the follow-ups'
-between ``FOLLOWUPS_BEGIN`` and ``FOLLOWUPS_END``, and ``--update FILE`` rewrites the blocks in
-place (atomically; the campaign and follow-up blocks only where FILE has their markers).
-tests/test_results_doc.py checks that the document's blocks are exactly this output.
+The records made by a grid with a ``[report]`` table (``reports``) are left out: they make that
+grid's block (refgs.analysis.report, which also writes this summary between its markers).  Runs
+made outside those grids by training code a report accepts have a family of their own.
 """
 from __future__ import annotations
 
-import argparse
 import json
-import sys
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,27 +29,16 @@ from typing import Callable
 
 import numpy as np
 
-from ..errors import ConfigError, RefgsError
-from ..io.atomic import atomic_write_text
-from .campaign import (CAMPAIGN_SOURCE_HASHES, campaign_markdown, load_campaign,
-                       made_by_campaign, prose)
-from .campaign_compute import compute_markdown
-from .campaign_followups import FOLLOWUPS_GRID, followups_markdown
-from .campaign_flatness import flatness_markdown
-from .campaign_paper import paper_markdown
+from ..errors import ConfigError
+from .report_spec import DEFAULT_METRICS, made_by
+from .report_tables import mean_std
 from .tables import method_label
 
-BEGIN_MARKER = "<!-- summary:begin -->"
-END_MARKER = "<!-- summary:end -->"
-MAIN_BEGIN = "<!-- main:begin -->"
-MAIN_END = "<!-- main:end -->"
-FOLLOWUPS_BEGIN = "<!-- followups:begin -->"
-FOLLOWUPS_END = "<!-- followups:end -->"
 #: The paper's protocol length (the DropGaussian settings: T = 10,000 iterations); runs of another
 #: length carry "T = ..." in their method cell.
 PROTOCOL_ITERS = 10_000
 #: (metrics.json key, column title, decimals shown): the paper's three metrics.
-METRICS = (("psnr", "PSNR", 2), ("ssim", "SSIM", 3), ("lpips_vgg", "LPIPS-VGG", 3))
+METRICS = DEFAULT_METRICS
 #: The name of the list of unrecorded runs, looked for beside the records folder.
 UNRECORDED_FILE = "unrecorded.toml"
 NO_RECORD = "no record"
@@ -80,7 +55,7 @@ class Run:
     label: str
     seed: int
     metrics: dict
-    #: made by the campaign's training code (campaign.CAMPAIGN_SOURCE_HASHES) outside its grid
+    #: made outside its grid by training code a report accepts (its ``[[report.code]]``)
     campaign_code: bool = False
 
 
@@ -148,17 +123,16 @@ def read_json(path: Path) -> dict:
     return data
 
 
-def load_run(folder: Path, config: dict | None = None) -> Run:
+def load_run(folder: Path, config: dict | None = None, accepted: tuple = ()) -> Run:
     """The Run of a record folder holding config.json (or its content ``config``) and
-    metrics.json."""
+    metrics.json; ``accepted``: the code hashes of the reports' grids."""
     config = read_json(folder / "config.json") if config is None else config
     settings = config.get("settings")
     metrics = read_json(folder / "metrics.json")
     if not isinstance(settings, dict):
         raise ConfigError(f"{folder / 'config.json'}: no 'settings' object")
     try:
-        campaign_code = (config.get("provenance") or {}).get("source_hash") \
-            in CAMPAIGN_SOURCE_HASHES
+        campaign_code = (config.get("provenance") or {}).get("source_hash") in accepted
         label = method_label(settings)
         if campaign_code:                   # these rows compare training settings: name the dtype
             label = f"{label}, {settings['dtype']}"
@@ -169,19 +143,20 @@ def load_run(folder: Path, config: dict | None = None) -> Run:
                           f"dtype ({exc})") from None
 
 
-def load_records(records_dir: str | Path) -> tuple[list[Run], dict[str, dict]]:
+def load_records(records_dir: str | Path, reports=()) -> tuple[list[Run], dict[str, dict]]:
     """(runs, {record id: flatness.json}) of every folder of ``records_dir`` except the records
-    of the main campaign and its follow-ups; folders that are neither are refused (ConfigError
-    naming the folder)."""
+    made by the grids of ``reports`` (refgs.analysis.report_spec.Report); folders that are
+    neither runs nor flatness analyses are refused (ConfigError naming the folder)."""
     records_dir = Path(records_dir)
     if not records_dir.is_dir():
         raise ConfigError(f"{records_dir}: not a folder (expected results/records)")
     runs, flatness = [], {}
+    accepted = tuple(h for r in reports for h in r.code)
     for folder in sorted(p for p in records_dir.iterdir() if p.is_dir()):
         if (folder / "config.json").is_file():
             config = read_json(folder / "config.json")
-            if not (made_by_campaign(config) or made_by_campaign(config, FOLLOWUPS_GRID)):
-                runs.append(load_run(folder, config))
+            if not any(made_by(config, r) for r in reports):
+                runs.append(load_run(folder, config, accepted))
         elif (folder / "flatness.json").is_file():
             flatness[folder.name] = read_json(folder / "flatness.json")
         else:
@@ -208,16 +183,6 @@ def load_unrecorded(path: str | Path) -> list[Unrecorded]:
 
 
 # --- formatting -----------------------------------------------------------------------------
-def mean_std_cell(values: list, decimals: int) -> str:
-    """``m ± s`` (sample std) for several values, the value for one, ``n/a`` if any is missing."""
-    if any(v is None for v in values):
-        return "n/a"
-    a = np.asarray(values, np.float64)
-    if a.size == 1:
-        return f"{a[0]:.{decimals}f}"
-    return f"{a.mean():.{decimals}f} ± {a.std(ddof=1):.{decimals}f}"
-
-
 def delta_cell(value, base, decimals: int) -> str:
     if value is None or base is None:
         return "n/a"
@@ -246,7 +211,7 @@ def family_table(family: Family, runs: list[Run], unrecorded: list[Unrecorded],
     for (scene, views, iters, label), rs in groups.items():
         rs = sorted(rs, key=lambda r: r.seed)
         cells = [scene, str(views), method_cell(label, iters), ", ".join(str(r.seed) for r in rs)]
-        cells += [mean_std_cell([r.metrics.get(k) for r in rs], d) for k, _, d in METRICS]
+        cells += [mean_std([r.metrics.get(k) for r in rs], d) for k, _, d in METRICS]
         if family.baseline:
             cells += baseline_cells(family.baseline, rs, all_runs)
         cells.append(", ".join(f"`{r.record}`" for r in rs))
@@ -317,10 +282,12 @@ def flatness_table(flatness: dict[str, dict]) -> str:
     return "\n".join(lines)
 
 
-def summary_markdown(records_dir: str | Path, unrecorded: str | Path | None = None) -> str:
+def summary_markdown(records_dir: str | Path, unrecorded: str | Path | None = None,
+                     reports=()) -> str:
     """The Markdown of every family table (families without rows are left out) and the
-    flatness table.  ``unrecorded``: the TOML list of unrecorded runs, or None for none."""
-    runs, flatness = load_records(records_dir)
+    flatness table.  ``unrecorded``: the TOML list of unrecorded runs, or None for none;
+    ``reports``: the reported grids whose records are left out (load_records)."""
+    runs, flatness = load_records(records_dir, reports)
     missing = load_unrecorded(unrecorded) if unrecorded is not None else []
     per_family = [([], []) for _ in FAMILIES]
     for r in runs:
@@ -339,104 +306,10 @@ def summary_markdown(records_dir: str | Path, unrecorded: str | Path | None = No
     return "\n".join(parts)
 
 
-# --- the document ---------------------------------------------------------------------------
-def split_document(text: str, name: str = "document", begin: str = BEGIN_MARKER,
-                   end: str = END_MARKER) -> tuple[str, str, str]:
-    """(before, block, after) around the one ``begin`` ... ``end`` pair (the summary's by
-    default); ConfigError naming ``name`` if the markers are missing, repeated or out of order."""
-    if text.count(begin) != 1 or text.count(end) != 1:
-        raise ConfigError(f"{name}: expected one {begin} and one {end} line")
-    before, rest = text.split(begin)
-    if end not in rest:
-        raise ConfigError(f"{name}: {end} comes before {begin}")
-    block, after = rest.split(end)
-    return before + begin, block, end + after
-
-
-def with_block(text: str, markdown: str, name: str = "document", begin: str = BEGIN_MARKER,
-               end: str = END_MARKER) -> str:
-    """``text`` with its ``begin`` ... ``end`` block replaced by ``markdown`` (blank line on each
-    side)."""
-    before, _, after = split_document(text, name, begin, end)
-    return f"{before}\n\n{markdown.strip()}\n\n{after}"
-
-
-PAPER_HEADING = "### Beside the paper"
-PAPER_PROSE = ("The paper reports dataset means; fern and bonsai are one scene of each of its "
-               "datasets, desk and cup have no counterpart. Each cell: ours (mean over our "
-               "seeds) / the paper's; the differences are of means (their paired CIs: above).")
-
-
-def main_markdown(records_dir: str | Path) -> str:
-    """The campaign block: the main tables (refgs.analysis.campaign), the paper's numbers
-    beside ours (refgs.analysis.campaign_paper), the flatness over training seeds
-    (refgs.analysis.campaign_flatness) and what the campaign cost
-    (refgs.analysis.campaign_compute)."""
-    runs = load_campaign(records_dir)
-    return "\n".join([campaign_markdown(records_dir).rstrip(), "", PAPER_HEADING, "",
-                      prose(PAPER_PROSE), "", paper_markdown(runs), "",
-                      flatness_markdown(records_dir, runs).rstrip(), "",
-                      compute_markdown(records_dir, runs)])
-
-
-def updated_document(text: str, records_dir: str | Path, unrecorded: str | Path | None,
-                     name: str = "document") -> str:
-    """``text`` with its summary block, its campaign block where it has MAIN_BEGIN or MAIN_END
-    and its follow-ups' block where it has FOLLOWUPS_BEGIN or FOLLOWUPS_END, rebuilt from the
-    records."""
-    text = with_block(text, summary_markdown(records_dir, unrecorded), name)
-    if MAIN_BEGIN in text or MAIN_END in text:
-        text = with_block(text, main_markdown(records_dir), name, MAIN_BEGIN, MAIN_END)
-    if FOLLOWUPS_BEGIN in text or FOLLOWUPS_END in text:
-        text = with_block(text, followups_markdown(records_dir), name, FOLLOWUPS_BEGIN,
-                          FOLLOWUPS_END)
-    return text
-
-
 def default_unrecorded(records_dir: str | Path) -> Path | None:
     path = Path(records_dir).absolute().parent / UNRECORDED_FILE
     return path if path.is_file() else None
 
 
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m refgs.analysis.summary",
-                                 description="print the summary tables of the recorded runs")
-    ap.add_argument("records", help="the records folder (results/records)")
-    ap.add_argument("--unrecorded", default=None,
-                    help=f"TOML list of reported runs without a record (default: {UNRECORDED_FILE} "
-                         "beside the records folder, if present)")
-    ap.add_argument("--main", action="store_true",
-                    help="print the main campaign's block instead of the summary")
-    ap.add_argument("--followups", action="store_true",
-                    help="print the follow-ups' block (experiments/paper_followups.toml) instead")
-    ap.add_argument("--update", metavar="FILE", default=None,
-                    help=f"rewrite the blocks between {BEGIN_MARKER} and {END_MARKER} and (where "
-                         f"present) {MAIN_BEGIN} and {MAIN_END}, {FOLLOWUPS_BEGIN} and "
-                         f"{FOLLOWUPS_END} of FILE instead of printing")
-    args = ap.parse_args(argv)
-    try:
-        unrecorded = args.unrecorded or default_unrecorded(args.records)
-        if args.update:
-            path = Path(args.update)
-            if not path.is_file():
-                raise ConfigError(f"--update: {path} not found")
-            text = path.read_text(encoding="utf-8")
-            atomic_write_text(path, updated_document(text, args.records, unrecorded, str(path)))
-        elif args.main:
-            sys.stdout.write(main_markdown(args.records))
-        elif args.followups:
-            sys.stdout.write(followups_markdown(args.records))
-        else:
-            sys.stdout.write(summary_markdown(args.records, unrecorded))
-    except RefgsError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    return 0
-
-
-__all__ = ["summary_markdown", "load_records", "load_unrecorded", "split_document", "with_block",
-           "updated_document", "main_markdown", "default_unrecorded", "FAMILIES", "BEGIN_MARKER", "END_MARKER",
-           "MAIN_BEGIN", "MAIN_END", "FOLLOWUPS_BEGIN", "FOLLOWUPS_END", "main"]
-
-if __name__ == "__main__":
-    sys.exit(main())
+__all__ = ["summary_markdown", "load_records", "load_unrecorded", "default_unrecorded",
+           "FAMILIES", "METRICS", "PROTOCOL_ITERS"]

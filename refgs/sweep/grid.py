@@ -7,7 +7,8 @@ A key is a ``refgs train`` option by its long name (``iters``, ``fm-gamma`` or `
 axis: the runs are the cartesian product of the axes (the last axis varies fastest).  Each
 ``[[group]]`` table adds keys to, or overrides keys of, the top-level ones and gives its own
 product; the runs of the groups follow one another.  A relative ``scene`` (or ``init-points``
-PLY) is relative to the grid file.
+PLY) is relative to the grid file.  An optional ``[report]`` table declares the grid's report
+(refgs.analysis.report_spec); it makes no runs.
 
 Each run's options are parsed by the parser of ``refgs train`` and turned into a TrainConfig by
 the same builder (``config_from_args``), so a grid accepts exactly the options of ``refgs train``.
@@ -41,6 +42,8 @@ from .options import RUN_CONTROL_FLAGS, add_train_options, config_from_args
 
 #: The key of the grid's group tables (``[[group]]``).
 GROUP_KEY = "group"
+#: The key of the grid's optional report table (``[report]``, read by refgs.analysis.report_spec).
+REPORT_KEY = "report"
 #: Keys whose relative paths are relative to the grid file (a PLY for --init-points).
 PATH_KEYS = ("scene", "init_points")
 #: Keys always in a run's name, in order (the seed goes last: ``fern_v3_fm_s0``).
@@ -143,7 +146,7 @@ def _check_table(path: Path, where: str, table: dict, parser: OptionParser) -> d
     for raw, value in table.items():
         key = key_of(raw)
         at = f"{path}: {where}{raw}"
-        if key == GROUP_KEY and not where:
+        if key in (GROUP_KEY, REPORT_KEY) and not where:
             continue
         if key in RUN_CONTROL_FLAGS:
             raise ConfigError(f"{at}: not allowed in a grid (the sweep sets where and how runs go)")
@@ -220,6 +223,20 @@ def _config(path: Path, parser: OptionParser, options: dict, where: str):
     return cfg
 
 
+def train_argv(path: Path, table: dict, where: str) -> list[str]:
+    """The ``refgs train`` tokens of one table of single option values (a grid without axes,
+    e.g. a report's pinned run), checked as a grid's are; ConfigError naming ``path`` and
+    ``where`` + the key."""
+    parser = OptionParser()
+    add_train_options(parser)
+    options = _check_table(path, where, table, parser)
+    axes = [k for k, v in options.items() if isinstance(v, list)]
+    if axes:
+        raise ConfigError(f"{path}: {where}{axes[0]}: expected one value, not a list")
+    _config(path, parser, options, where)
+    return [t for k, v in options.items() for t in _tokens(parser, k, v)]
+
+
 def load_grid(path: str | os.PathLike) -> Grid:
     """Every run of the grid file ``path`` (see the module docstring); ConfigError naming the
     file and the key on any problem."""
@@ -267,4 +284,5 @@ def load_grid(path: str | os.PathLike) -> Grid:
     return Grid(path, runs)
 
 
-__all__ = ["load_grid", "Grid", "GridRun", "OptionParser", "run_name", "key_of", "GROUP_KEY"]
+__all__ = ["load_grid", "train_argv", "Grid", "GridRun", "OptionParser", "run_name", "key_of",
+           "GROUP_KEY", "REPORT_KEY"]

@@ -1,6 +1,6 @@
-"""What the main campaign cost, from its records: per cell the training loop's time, the Gaussians
+"""What a grid's runs cost, from their records: per cell the training loop's time, the Gaussians
 at T and the peak memory, and the campaign's compute and wall time (FM-15: every number from a
-record).
+record; a report's ``[report.cost]`` table, refgs.analysis.report).
 
 A record's ``history.json`` holds ``iter_seconds`` (one wall-clock duration per iteration) and its
 ``config.json`` the time the run ``started`` and every resume (``resumes``: ``from_iteration``,
@@ -21,7 +21,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..runs import CONFIG_FILE, HISTORY_FILE
-from .campaign import CAMPAIGN_METHODS, CAMPAIGN_SCENES, CampaignRun, metric, prose
+from .report_tables import ReportRun, head, metric, prose, row
 from .tables import read_run_json
 
 #: The timestamp format of ``started`` and of a resume's ``time`` (refgs.runs).
@@ -67,16 +67,17 @@ def union_seconds(intervals: list[tuple[datetime, datetime]]) -> float:
     return total
 
 
-def compute_markdown(records_dir: str | Path, runs: list[CampaignRun]) -> str:
-    """The heading, the per-cell table and the campaign's totals for the records ``runs``."""
+def cost_markdown(records_dir: str | Path, runs: list[ReportRun], groups, methods,
+                  note: str) -> str:
+    """The heading, the per-cell table (``groups`` x ``methods``) and the totals of the records
+    ``runs``, then ``note``."""
     if not runs:
         return "\n".join([COMPUTE_HEADING, "", "No campaign records yet.", ""])
-    head = ["scene", "views", "method", "n", "training loop, min (mean; range)",
-            "Gaussians at T (mean)", "peak RSS, GB (max)"]
-    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    lines = head(["scene", "views", "method", "n", "training loop, min (mean; range)",
+                  "Gaussians at T (mean)", "peak RSS, GB (max)"])
     all_segments, loop_total = [], 0.0
-    for scene, views in CAMPAIGN_SCENES:
-        for method in CAMPAIGN_METHODS:
+    for scene, views in groups:
+        for method in methods:
             rs = [r for r in runs if (r.scene, r.views, r.method) == (scene, views, method)]
             if not rs:
                 continue
@@ -90,21 +91,19 @@ def compute_markdown(records_dir: str | Path, runs: list[CampaignRun]) -> str:
             loop_total += sum(loops)
             gaussians = [metric(r, "n_gaussians") for r in rs]
             rss = [metric(r, "peak_rss_gb") for r in rs]
-            lines.append("| " + " | ".join([
+            lines.append(row([
                 scene, str(views), method, str(len(rs)),
                 f"{np.mean(loops):.1f}; {min(loops):.1f}-{max(loops):.1f}",
                 "n/a" if None in gaussians else f"{np.mean(gaussians):,.0f}",
-                "n/a" if None in rss else f"{max(rss):.2f}"]) + " |")
+                "n/a" if None in rss else f"{max(rss):.2f}"]))
     first = min(a for a, _ in all_segments)
     last = max(b for _, b in all_segments)
     wall = union_seconds(all_segments) / 3600
     text = (f"{len(runs)} runs; their training loops add up to {loop_total / 60:.1f} h of "
             f"compute; the campaign's wall time (the union of the runs' training intervals: "
             f"two runs side by side count once, breaks between sessions not at all) is "
-            f"{wall:.1f} h, between {first:%Y-%m-%d %H:%M} and {last:%Y-%m-%d %H:%M} UTC. Setup "
-            "and each run's final evaluation (about a minute) are not counted "
-            "(refgs/analysis/campaign_compute.py).")
+            f"{wall:.1f} h, between {first:%Y-%m-%d %H:%M} and {last:%Y-%m-%d %H:%M} UTC. {note}")
     return "\n".join([COMPUTE_HEADING, "", prose(text), "", *lines, ""])
 
 
-__all__ = ["segments", "union_seconds", "compute_markdown"]
+__all__ = ["segments", "union_seconds", "cost_markdown"]
