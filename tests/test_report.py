@@ -248,3 +248,19 @@ def test_the_pinned_run_is_reproduced_bit_for_bit(tmp_path):
         "cpu": equivalence.cpu_level(), "digest": digest, "code": "other00000000000"})
     assert equivalence.check_equivalence(load_report(grid)).startswith(f"{code}: accepted")
     assert code in load_report(grid).code
+
+
+def test_the_documented_example_is_a_valid_report(tmp_path):
+    """docs/sweeps.md's complete [report] example loads and reports (no records yet)."""
+    doc = (ROOT / "docs" / "sweeps.md").read_text(encoding="utf-8")
+    start = doc.index("```toml\n# experiments/my_study.toml") + len("```toml\n")
+    example = doc[start:].split("```", 1)[0]
+    grid = tmp_path / "experiments" / "my_study.toml"
+    grid.parent.mkdir()
+    grid.write_text(example)
+    (tmp_path / "records").mkdir()
+    report = load_report(grid)
+    assert report.marker == "my_study" and report.comparisons == (("fm[gamma=1.5]", "3dgs"),)
+    md = report_markdown(report, tmp_path / "records")
+    assert "### Beside the paper" in md and "No campaign records yet." in md
+    assert "| fern | 3 | fm[gamma=1.5] | 0 |  | running or not yet run |" in md
