@@ -1,8 +1,10 @@
-"""Which named deviations explain a backend's failures (docs/spec/deviations.md, DEV-02).
+"""Which named deviations explain a backend's failures, and what is left (docs/spec/deviations.md,
+DEV-02, DEV-03).
 
     result = diagnose("oracle.meta.deviant:gsplat_as_inria")     # a spec, BackendInfo or object
     result["summary"]   # "behaves like the reference with {...}: explains 9 of 9 failing checks,
                         #  0 new failures"
+    result["residual"]  # where the outputs first part under that set (oracle/residual.py)
 
 One scene at a time: the backend's output against the float64 reference rendered with a set of
 deviations on (``RenderConfig.deviations``), judged by the checks' own comparisons and the
@@ -10,20 +12,23 @@ tolerance table (oracle/explain.py, oracle/evaluate.py, oracle/tolerances.py).  
 outputs are memoised per scene (only the reference changes while the search runs); given a
 BackendInfo of an isolated worker (oracle/isolation.py ``open_backend``, what ``python -m oracle
 diagnose`` and ``check --diagnose`` use) the backend runs there, so a backend that crashes or
-hangs costs the scene it was on, not the diagnosis.  Steps: probes -- scenes of every
-render-level and stage check (the first failing one also shrunk, oracle/shrink.py), the failing
-scenes of a check run when given (``extra``), and the witness scene of every deviation
-(refgs/deviations.py; for a backend whose render cannot run here, judged through its stage
-functions); greedy forward selection of a single deviation, else a pair, then pruning;
-verification on fresh scenes.  A failure no set explains is reported as unexplained, never
-guessed.
+hangs costs the scene it was on, not the diagnosis.  Steps:
+
+1. probes -- the stage probes (oracle/stage_probes.py: one mechanism each), the witness scene of
+   every deviation (refgs/deviations.py; for a backend whose render cannot run here, judged
+   through its stage functions), scenes of every render-level and stage check (the first
+   failing one also shrunk, oracle/shrink.py) and the failing scenes of a check run (``extra``);
+2. the search (oracle/search.py): stepwise selection by the distance left on every probe, first
+   over the small scenes, then over all of them from that set;
+3. what is left (oracle/residual.py): per probe, the distance under the set; the stage where the
+   outputs first part, from the stage probes' ladder and the backend's stage functions;
+4. verification on fresh scenes of the checks.  A failure no set explains is reported as
+   unexplained, with its stage where one is found, never guessed.
 """
 from __future__ import annotations
 
-import itertools
 import sys
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -38,10 +43,15 @@ from refgs.io.atomic import atomic_write_json, atomic_write_text
 from .checks import CHECKS, Check
 from .compare import problem
 from .evaluate import Context, Verdict
-from .explain import (INVARIANT_WAIVERS, Probe, backend_info, explains, fingerprint, judge, outcome,
-                      plain_context, reference_fingerprint, with_deviations)
+from .explain import (Probe, backend_info, explains, fingerprint, judge, plain_context,
+                      with_deviations)
+from .html import PICTURES
 from .protocol import BackendError, BackendInfo, Case
+from .residual import STAGE_OF_FUNCTION, draw_probe, localise
+from .residual import summary as residual_summary
+from .search import DistanceSearch
 from .shrink import shrink
+from .stage_probes import STAGE_PROBES, stage_probe_cases
 
 #: check kinds judged by comparison with the reference, hence explainable by a deviation
 DIAGNOSED_KINDS = ("forward", "backward", "hard", "stage")
@@ -54,133 +64,6 @@ SHRINK_BUDGET = 20
 #: scenes drawn per passing check to look for new failures in the verification (and per check
 #: outside ``focus`` in the first pass)
 PASSING_SAMPLE = 2
-#: at most this many single deviations (those that move the unexplained probes most) are paired
-MAX_PAIRED = 12
-#: the stage of the catalogue (Deviation.stage) each stage function computes
-STAGE_OF_FUNCTION = {"covariance": "COV", "projection": "PRJ", "sh": "SH", "composite": "RAS"}
-
-
-@dataclass(frozen=True)
-class Score:
-    explained: int                   # failing probes that agree under the set
-    broken: int                      # agreeing probes that differ under the set
-    residual: float                  # sum of log10(worst ratio) over failing probes still differing
-
-    @property
-    def net(self) -> int:
-        return self.explained - self.broken
-
-
-class Search:
-    """Greedy forward selection over deviation sets (module docstring, step 2)."""
-
-    def __init__(self, ctx: Context, failing: list, passing: list, candidates: list):
-        self.ctx, self.failing, self.passing, self.candidates = ctx, failing, passing, candidates
-        self.cache: dict = {}
-        self.trace: list = []
-        self.evaluations = 0
-
-    def outcome(self, i: int, probes: list, deviations: frozenset) -> tuple[str, float]:
-        """The probe's outcome under ``deviations``; sets under which the reference renders the
-        probe identically share one judgement (the backend is judged against those outputs)."""
-        key = (id(probes), i, deviations)
-        if key not in self.cache:
-            fp = (id(probes), i, reference_fingerprint(probes[i], deviations),
-                  frozenset(o for o, devs in INVARIANT_WAIVERS.items() if devs & deviations))
-            if fp not in self.cache:
-                self.evaluations += 1
-                self.cache[fp] = outcome(judge(self.ctx, probes[i], deviations))
-            self.cache[key] = self.cache[fp]
-        return self.cache[key]
-
-    def explained(self, s: frozenset) -> tuple[int, float]:
-        n, residual = 0, 0.0
-        for i in range(len(self.failing)):
-            status, ratio = self.outcome(i, self.failing, s)
-            if status == "agree":
-                n += 1
-            elif status == "differ":
-                residual += float(np.log10(max(ratio, 1.0)))
-        return n, residual
-
-    def broken(self, s: frozenset) -> int:
-        return sum(self.outcome(i, self.passing, s)[0] == "differ" for i in range(len(self.passing)))
-
-    def score(self, s: frozenset) -> Score:
-        n, residual = self.explained(s)
-        return Score(n, self.broken(s) if s else 0, residual)
-
-    def _best(self, options: list, current_set: frozenset, current: Score):
-        """The option of highest net score above ``current``.  Options are rated by the failing
-        probes they newly explain (an upper bound of what they add) and scored in full, lazily,
-        only while that bound can still beat the best so far."""
-        open_ = [i for i in range(len(self.failing))
-                 if self.outcome(i, self.failing, current_set)[0] != "agree"]
-
-        def gain(s):
-            n, residual = 0, 0.0
-            for i in open_:
-                status, ratio = self.outcome(i, self.failing, s)
-                n += status == "agree"
-                residual += float(np.log10(max(ratio, 1.0))) if status == "differ" else 0.0
-            return n, residual
-
-        rated = sorted(((gain(s), s) for s in options), key=lambda x: (-x[0][0], x[0][1], sorted(x[1])))
-        best = None
-        for (n, _), s in rated:
-            if n == 0 or current.explained + n <= (best[1].net if best else current.net):
-                break                                      # cannot beat the best any more
-            sc = self.score(s)
-            if sc.net > current.net and (best is None or (sc.net, -sc.residual) > (best[1].net, -best[1].residual)):
-                best = (s, sc)
-        return best
-
-    def _relevant(self, current: frozenset) -> list:
-        """Single additions that move the unexplained probes' errors, most first."""
-        moved = []
-        base = [self.outcome(i, self.failing, current) for i in range(len(self.failing))]
-        for d in self.candidates:
-            s = current | {d}
-            if d in current or incompatible(s):
-                continue
-            shift = sum(abs(np.log10(max(self.outcome(i, self.failing, s)[1], 1e-300))
-                            - np.log10(max(r, 1e-300)))
-                        for i, (st, r) in enumerate(base) if st != "agree")
-            if shift > 1e-9:
-                moved.append((shift, d))
-        return [d for _, d in sorted(moved, key=lambda x: (-x[0], x[1]))[:MAX_PAIRED]]
-
-    def run(self, pairs: bool = True, start: frozenset = frozenset()) -> frozenset:
-        """Greedy forward selection from ``start`` (module docstring), then pruning."""
-        current = frozenset(start)
-        sc = self.score(current)
-        while sc.explained < len(self.failing):
-            singles = [current | {d} for d in self.candidates
-                       if d not in current and incompatible(current | {d}) is None]
-            best = self._best(singles, current, sc)
-            if best is None and pairs:
-                rel = self._relevant(current)
-                duo = [current | {a, b} for a, b in itertools.combinations(rel, 2)
-                       if incompatible(current | {a, b}) is None]
-                best = self._best(duo, current, sc)
-            if best is None:
-                break
-            added = sorted(best[0] - current)
-            current, sc = best
-            self.trace.append({"added": added, "explained": sc.explained, "broken": sc.broken,
-                               "of": len(self.failing)})
-        pruned = True
-        while pruned and current:                        # drop members the others do not need
-            pruned = False
-            for d in sorted(current):
-                s = current - {d}
-                alt = self.score(s)
-                if alt.net >= sc.net:
-                    current, sc, pruned = s, alt, True
-                    self.trace.append({"dropped": d, "explained": sc.explained, "broken": sc.broken,
-                                       "of": len(self.failing)})
-                    break
-        return current
 
 
 def _draw(check: Check, ctx: Context, n: int, seed: int) -> list[Case]:
@@ -304,19 +187,64 @@ def verify(ctx: Context, deviations, failing_checks, passing_checks, examples: i
     return out
 
 
+def stage_probe_list(info: BackendInfo) -> list[Probe]:
+    """The stage probes (oracle/stage_probes.py) inside the backend's declared capabilities,
+    rounded to its dtype; none when its render cannot run here."""
+    if info.unavailable_reason is not None:
+        return []
+    out = []
+    for p, case in stage_probe_cases(info.profile):
+        w = p.witness
+        if (w.sh1 is not None and info.max_sh_degree < 1) or (any(w.background) and not info.supports_background):
+            continue
+        out.append(Probe("stage", p.name, case.rounded(info.dtype), rounding=info.dtype))
+    return out
+
+
+def _rows(search: DistanceSearch, found: frozenset) -> dict:
+    """The residual rows by kind of probe: stage probes, witnesses, check scenes."""
+    rows = {"stage": [], "witness": [], "check": []}
+    for p, r in zip(search.probes, search.residual(found)):
+        if p.source == "stage":
+            sp = STAGE_PROBES[p.name]
+            r.update(stage=sp.stage, clauses=list(sp.clauses), adds=sp.adds, base=sp.base)
+            rows["stage"].append(r)
+        elif p.source == "witness":
+            rows["witness"].append(r)
+        else:
+            r.update(check=p.check.name, kind=p.check.kind)
+            rows["check"].append(r)
+    return rows
+
+
+def _pictures(ctx: Context, search: DistanceSearch, found: frozenset, rows: dict, folder) -> None:
+    """Draw each stage probe against the plain reference, and each probe of a stage where the
+    outputs still part under the set; file names go into the rows (``picture``, ``residual_picture``)."""
+    folder = Path(folder)
+    by_name = {p.name: p for p in search.probes if p.source == "stage"}
+    for r in rows["stage"]:
+        p = by_name[r["name"]]
+        pic = draw_probe(ctx, p, (), folder / f"stage-{p.name}.png")
+        r["picture"] = pic.name if pic is not None else None
+        if r["status"] == "differ" and found:
+            pic = draw_probe(ctx, p, found, folder / f"stage-{p.name}-residual.png")
+            r["residual_picture"] = pic.name if pic is not None else None
+
+
 def diagnose(backend, *, examples: int = DEFAULT_EXAMPLES, seed: int = 0, checks=None,
-             witnesses: bool = True, shrink_failures: bool = True, pairs: bool = True,
+             witnesses: bool = True, stage_probes: bool = True, shrink_failures: bool = True,
              verify_set: bool = True, progress=None, focus=None, extra=(),
-             timeout: float | None = None) -> dict:
-    """Find the smallest set of catalogued deviations under which the reference matches the
-    backend (module docstring).  ``backend``: a ``module:object`` spec (loaded in this process),
-    a BackendInfo (an isolated worker's, or in this process) or a backend object.  ``checks``:
+             timeout: float | None = None, pictures=None) -> dict:
+    """Find the set of catalogued deviations that brings the reference closest to the backend
+    (module docstring).  ``backend``: a ``module:object`` spec (loaded in this process), a
+    BackendInfo (an isolated worker's, or in this process) or a backend object.  ``checks``:
     Check objects or names (default: every check; those not of a diagnosed kind are run and, if
     they fail, listed under ``not_diagnosed``).  ``focus``: the checks whose failures matter
     (oracle/triage.py passes a run's failing checks; the others get PASSING_SAMPLE scenes);
     ``extra``: (check name, Case) failing scenes to use as probes; ``timeout``: seconds of
-    backend time per call of an isolated backend.  Returns a JSON-ready dict; ``summary`` is the
-    one-line verdict."""
+    backend time per call of an isolated backend; ``pictures``: a folder to draw the stage
+    probes into (oracle/diagnosis_page.py shows them).  Returns a JSON-ready dict; ``summary``
+    is the one-line verdict, ``residual`` what is left (oracle/residual.py)."""
     t0 = time.perf_counter()
     info = backend_info(backend)
     ctx = plain_context(info, timeout)
@@ -335,19 +263,21 @@ def diagnose(backend, *, examples: int = DEFAULT_EXAMPLES, seed: int = 0, checks
     not_diagnosed = _not_diagnosed(ctx, [c for c in chosen if c.kind not in DIAGNOSED_KINDS],
                                    examples, seed)
     cands = candidates_for(info)
-    wit = witness_probes(info, cands) if witnesses else []
-    status = [outcome(judge(ctx, p, ()))[0] for p in wit]        # inconclusive ones are left out
-    w_fail = [p for p, st in zip(wit, status) if st == "differ"]
-    w_pass = [p for p, st in zip(wit, status) if st == "agree"]
-    # witnesses first (small scenes that tell deviations apart), then every probe from there
-    start = Search(ctx, w_fail, w_pass, cands).run(pairs=pairs) if w_fail and failing else frozenset()
-    search = Search(ctx, failing + w_fail, passing + w_pass, cands)
-    found = search.run(pairs=pairs, start=start) if search.failing else frozenset()
+    small = (stage_probe_list(info) if stage_probes else []) + \
+        (witness_probes(info, cands) if witnesses else [])
+    # the small scenes first (they tell deviations apart), then every probe from there
+    search = DistanceSearch(ctx, small, cands)
+    found = search.run()
+    if failing:
+        search.add(failing + passing)
+        found = search.run(start=found)
+    rows = _rows(search, found)
+    if pictures is not None:
+        _pictures(ctx, search, found, rows, pictures)
+    loc = localise(rows["stage"], rows["check"])
     ver = verify(ctx, found, sorted(messages), ok_checks, examples, seed) if verify_set else None
-    w_ok = sorted({p.name for k, p in enumerate(w_fail)
-                   if search.outcome(len(failing) + k, search.failing, found)[0] == "agree"}
-                  - {p.name for k, p in enumerate(w_fail)
-                     if search.outcome(len(failing) + k, search.failing, found)[0] != "agree"})
+    w_diff = {r["name"] for r in rows["witness"] if r["before"] == "differ"}
+    w_left = {r["name"] for r in rows["witness"] if r["status"] == "differ"}
     result = {
         "backend": {"spec": info.spec, "name": info.name, "version": info.version,
                     "profile": info.profile, "dtype": info.dtype},
@@ -357,13 +287,18 @@ def diagnose(backend, *, examples: int = DEFAULT_EXAMPLES, seed: int = 0, checks
                     for n in DEVIATIONS if n in found],
         "failing_checks": sorted(messages), "failure_messages": messages,
         "passing_checks": ok_checks, "not_diagnosed": not_diagnosed,
-        "witnesses": {"differing": sorted({p.name for p in w_fail}),
-                      "agreeing": sorted({p.name for p in w_pass}), "explained": w_ok},
+        "stage_probes": rows["stage"],
+        "witnesses": {"differing": sorted(w_diff),
+                      "agreeing": sorted({r["name"] for r in rows["witness"]} - w_diff),
+                      "explained": sorted(w_diff - w_left)},
+        "residual": {"summary": residual_summary(loc), **loc, "probes": rows["check"] + rows["witness"]},
         "search": {"trace": search.trace, "evaluations": search.evaluations, "candidates": cands,
-                   "probes_failing": len(search.failing), "probes_agreeing": len(search.passing)},
+                   "probes": len(search.probes), "distance_before": round(search.total(frozenset()), 3),
+                   "distance_after": round(search.total(found), 3), "margin": search.margin},
         "verification": ver,
-        "settings": {"examples": examples, "seed": seed, "witnesses": witnesses, "pairs": pairs,
-                     "shrink": shrink_failures, "backend_in_process": info.session is None,
+        "settings": {"examples": examples, "seed": seed, "witnesses": witnesses,
+                     "stage_probes": stage_probes, "shrink": shrink_failures,
+                     "backend_in_process": info.session is None,
                      "render_available": info.unavailable_reason is None},
         "duration_s": round(time.perf_counter() - t0, 2),
     }
@@ -391,29 +326,43 @@ def _not_diagnosed(ctx: Context, checks, examples: int, seed: int) -> list:
 
 
 def summary_line(result: dict) -> str:
-    """"behaves like the reference with {...}: explains X of Y failing checks, Z new failures"."""
+    """"behaves like the reference with {...}: explains X of Y failing checks, Z new failures"
+    and, when something is left, where the outputs first part."""
     names = result["deviations"]
     n_fail = len(result["failing_checks"])
     ver = result.get("verification")
     wit = result["witnesses"]["differing"]
-    if not n_fail and not wit:
-        return "agrees with the reference on every diagnosed check and witness: nothing to explain"
+    stage_diff = [r for r in result.get("stage_probes", []) if r["before"] == "differ"]
+    if not n_fail and not wit and not stage_diff:
+        return "agrees with the reference on every diagnosed check, witness and stage probe: nothing to explain"
     head = (f"behaves like the reference with {label(names)}" if names else
             "no set of catalogued deviations explains its failures")
+    res = result.get("residual") or {}
+    tail = f"; {res['summary']}" if res.get("first") else ""
     if ver is None:
-        return f"{head} ({len(result['witnesses']['explained'])} of {len(wit)} differing witnesses agree)"
+        return (f"{head} ({len(result['witnesses']['explained'])} of {len(wit)} differing "
+                f"witnesses agree){tail}")
     return (f"{head}: explains {len(ver['explained'])} of {n_fail} failing checks, "
-            f"{len(ver['new_failures'])} new failures")
+            f"{len(ver['new_failures'])} new failures{tail}")
 
 
 def summary_text(result: dict) -> str:
-    """The diagnosis as a few lines of text (what ``python -m oracle diagnose`` prints)."""
+    """The diagnosis as text (what ``python -m oracle diagnose`` prints): the stage probes'
+    verdicts, the named set, what is left by stage, the time taken."""
     b = result["backend"]
     where = "in-process" if result["settings"].get("backend_in_process", True) else "in a worker"
     lines = [f"diagnosis of {b['spec'] or b['name']} ({b['profile']}, {b['dtype']}); "
              f"backend run {where}, {result['duration_s']} s", result["summary"]]
+    sp = result.get("stage_probes", [])
+    if sp:
+        lines.append("  stage probes (without deviations -> under the set):")
+        lines += [f"    {r['name']:<17} {r['stage']:<3} {', '.join(r['clauses']):<16} "
+                  f"{r['before']:>6} -> {r['status']:<6} distance {r['distance_before']:.2f} -> "
+                  f"{r['distance']:.2f}" for r in sp]
+    if result["details"]:
+        lines.append("  the named set:")
     for d in result["details"]:
-        lines.append(f"  {d['name']:<26} {d['stage']} {d['clause']:<7} {d['label']}")
+        lines.append(f"    {d['name']:<26} {d['stage']} {d['clause']:<7} {d['label']}")
     ver = result.get("verification") or {}
     for u in ver.get("unexplained", []):
         lines.append(f"  unexplained: {u['check']}: {u['message'][:200]}")
@@ -424,6 +373,14 @@ def summary_text(result: dict) -> str:
     w = result["witnesses"]
     lines.append(f"  witnesses: {len(w['differing'])} differ without deviations, "
                  f"{len(w['explained'])} of them agree under the set")
+    res = result.get("residual") or {}
+    if res:
+        lines.append(f"  what is left: {res['summary']}")
+        for stage in res.get("stages", []):
+            lines += [f"    {e['sentence']}" for e in res["by_stage"][stage]]
+    s = result["search"]
+    lines.append(f"  search: distance {s['distance_before']} -> {s['distance_after']} over "
+                 f"{s['probes']} probes, {s['evaluations']} judgements; {result['duration_s']} s")
     return "\n".join(lines)
 
 
@@ -444,20 +401,26 @@ def run_cli(a) -> int:
     try:
         result = diagnose(info, examples=a.max_examples, seed=a.seed,
                           checks=[] if a.no_checks else None, timeout=a.timeout or None,
+                          pictures=Path(a.report) / PICTURES if a.report else None,
                           progress=lambda n, st: print(f"  {n:<28} {st}", file=sys.stderr, flush=True))
     finally:
         info.session.close()
     print(summary_text(result))
     if a.report:
-        atomic_write_json(Path(a.report) / "diagnosis.json", result)
-        atomic_write_text(Path(a.report) / "diagnosis.txt", summary_text(result) + "\n")
-        print(f"diagnosis: {Path(a.report) / 'diagnosis.json'} and {Path(a.report) / 'diagnosis.txt'}")
+        from .diagnosis_page import write_diagnosis_page
+
+        folder = Path(a.report)
+        atomic_write_json(folder / "diagnosis.json", result)
+        atomic_write_text(folder / "diagnosis.txt", summary_text(result) + "\n")
+        page = write_diagnosis_page(result, folder)
+        print(f"diagnosis: {folder / 'diagnosis.json'}, {folder / 'diagnosis.txt'} and {page}")
     ver = result["verification"] or {}
     w = result["witnesses"]
-    left = ver.get("unexplained") or ver.get("new_failures") or len(w["explained"]) < len(w["differing"])
+    left = ver.get("unexplained") or ver.get("new_failures") or len(w["explained"]) < len(w["differing"]) \
+        or result["residual"]["first"] is not None
     return 1 if left else 0
 
 
-__all__ = ["Probe", "Search", "candidates_for", "check_probes", "diagnose", "explains",
-           "judge", "plain_context", "summary_line", "summary_text", "verify", "witness_probes",
-           "with_deviations"]
+__all__ = ["Probe", "candidates_for", "check_probes", "diagnose", "explains", "judge",
+           "plain_context", "stage_probe_list", "summary_line", "summary_text", "verify",
+           "witness_probes", "with_deviations"]

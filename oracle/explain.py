@@ -28,7 +28,7 @@ from refgs.deviations import DEVIATIONS, incompatible
 
 from . import evaluate as ev
 from .checks import Check
-from .compare import problem
+from .compare import RATIO_LIMIT, problem
 from .evaluate import Context, Verdict
 from .isolation import OutputReleased, WorkerLost
 from .protocol import BackendInfo, Case, describe_backend, load_backend
@@ -37,7 +37,7 @@ from .protocol import BackendInfo, Case, describe_backend, load_backend
 #: only under the deviations that change that property by definition
 INVARIANT_WAIVERS = {"final_T": {"blend_at_cutoff", "stop_off"}, "background": {"no_background"}}
 #: a worst error/tolerance ratio above this counts as this (structural failures are infinite)
-RATIO_CAP = 1e12
+RATIO_CAP = RATIO_LIMIT
 #: a signature is searched among subsets of the found set up to this size, then the whole set
 SIGNATURE_MAX_SUBSET = 2
 
@@ -210,7 +210,9 @@ def outcome(v: Verdict) -> tuple[str, float]:
 #: the reference outputs that identify a probe's judgement
 FINGERPRINT_OUTPUTS = ("image", "alpha", "depth", "n_contrib", "radii", "visible", "means2d",
                        "depths", "conics", "colors", "opacities")
-#: reference fingerprints of witness probes, shared by every diagnosis in this process
+#: probe sources whose scene depends only on the probe's name, profile and rounding
+FIXED_SCENES = ("witness", "stage")
+#: reference fingerprints of witness and stage probes, shared by every diagnosis in this process
 _WITNESS_FINGERPRINTS: dict = {}
 
 
@@ -218,9 +220,10 @@ def reference_fingerprint(probe: Probe, deviations) -> str:
     """A digest of the reference's outputs on the probe under ``deviations`` and, for a probe
     judged through gradients, of its gradients for one fixed random cotangent."""
     kind = probe.check.kind if probe.check is not None else ("backward" if probe.backward else "forward")
-    if probe.source != "witness":
+    if probe.source not in FIXED_SCENES:
         return fingerprint(probe.scene, frozenset(deviations), kind)
-    # a witness scene is a function of (deviation, profile, rounding): the same in every diagnosis
+    # a witness or stage probe's scene is a function of (name, profile, rounding): the same in
+    # every diagnosis
     key = (probe.name, str(probe.scene.config.profile), probe.scene.label, kind,
            frozenset(deviations), probe.rounding)
     if key not in _WITNESS_FINGERPRINTS:
