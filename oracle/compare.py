@@ -53,6 +53,11 @@ class Comparison:
     evidence: str = ""
     #: for kind "exception": the exception's type and the line it was raised at
     origin: str = ""
+    #: the graded size of a failure: the sum of error / tolerance over the judged elements out
+    #: of tolerance (each at most RATIO_LIMIT; exact outputs: EXACT_EXCESS per differing
+    #: element); what the diagnosis' distance is made of (oracle/search.py); 0 when every
+    #: element is within tolerance
+    excess: float = 0.0
 
     def to_json(self) -> dict:
         def f(x):
@@ -66,6 +71,12 @@ class Comparison:
                 "bound": f(self.bound), "n_compared": int(self.n_compared), "n_bad": int(self.n_bad),
                 "ties": self.ties, "metrics": {k: f(v) for k, v in self.metrics.items()},
                 "kind": self.kind, "evidence": self.evidence}
+
+
+#: the excess of one differing element of an exact (integer or boolean) output
+EXACT_EXCESS = 1.0
+#: an element's error / tolerance counts at most this much in the excess (a zero bound: inf)
+RATIO_LIMIT = 1e12
 
 
 def _fmt(x) -> str:
@@ -154,9 +165,11 @@ def compare_values(output: str, got: np.ndarray, ref: np.ndarray, tol, *, select
         return Comparison(output, True, f"{output}: nothing to compare", ties=ties)
     idx = np.unravel_index(int(np.argmax(considered)), ref.shape)
     worst = float(considered[idx])
+    excess = float(np.sum(np.minimum(ratio[bad], RATIO_LIMIT))) if bad.any() else 0.0
     c = Comparison(output, not bad.any(), ratio=worst, index=tuple(int(i) for i in idx),
                    got=float(got[idx]), expected=float(ref[idx]), error=float(diff[idx]),
-                   bound=float(bound[idx]), n_compared=n_cmp, n_bad=int(bad.sum()), ties=ties)
+                   bound=float(bound[idx]), n_compared=n_cmp, n_bad=int(bad.sum()), ties=ties,
+                   excess=excess)
     c.message = (f"{output}{list(c.index)}={_fmt(c.got)}, but should be roughly {_fmt(c.expected)} "
                  f"(|diff|={c.error:.2e}, tol={c.bound:.2e}; {c.n_bad} of {n_cmp} elements out of "
                  f"tolerance)") if not c.ok else (
@@ -181,7 +194,8 @@ def compare_exact(output: str, got: np.ndarray, ref: np.ndarray, *, select=None,
                                      f"({int(bad.sum())} of {n_cmp} elements differ)",
                       ratio=np.inf, index=idx, got=float(got[idx]), expected=float(ref[idx]),
                       error=float(abs(float(got[idx]) - float(ref[idx]))), bound=0.0,
-                      n_compared=n_cmp, n_bad=int(bad.sum()), ties=ties)
+                      n_compared=n_cmp, n_bad=int(bad.sum()), ties=ties,
+                      excess=EXACT_EXCESS * int(bad.sum()))
 
 
 def gradient_metrics(got: np.ndarray, ref: np.ndarray, scale: np.ndarray, floor: float,
