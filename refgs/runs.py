@@ -244,6 +244,14 @@ def _checkpoint(trainer: Trainer, run: RunDir) -> None:
     run.publish()
 
 
+def is_test_point(t: int, every: int, iters: int) -> bool:
+    """Whether the loop measures the test PSNR at the end of iteration t (TRN-07): at the
+    iteration *before* each multiple of ``every`` (0: none), so that the opacity reset (TRN-06)
+    and FM's reinitialisation (FM-06), which fall on multiples, never show in the curve; the
+    final iteration T is measured after the loop."""
+    return bool(every) and (t + 1) % every == 0 and t < iters
+
+
 def _loop(trainer: Trainer, run: RunDir, progress: bool, callback=None) -> None:
     from tqdm import tqdm
 
@@ -258,7 +266,7 @@ def _loop(trainer: Trainer, run: RunDir, progress: bool, callback=None) -> None:
                 bar.update(1)
                 bar.set_postfix(loss=f"{trainer.loss_ema:.4f}", psnr=f"{info['psnr']:.2f}",
                                 n=trainer.n, refresh=False)
-                if cfg.eval_interval and t % cfg.eval_interval == 0 and t < cfg.iters:
+                if is_test_point(t, cfg.eval_interval, cfg.iters):
                     value = trainer.test_psnr()
                     if progress:
                         bar.write(f"[{t}] test PSNR {value:.3f} dB", file=sys.stderr)
@@ -492,6 +500,6 @@ def render_run(run_dir: str | Path, split: str = "test") -> Path:
 
 __all__ = ["train", "resume", "load", "LoadedRun", "make_trainer", "evaluate", "evaluate_run",
            "render_run", "finish", "metrics_table", "plot_history", "load_views",
-           "initial_points", "absolute_paths", "settings_hash", "read_config", "write_config",
+           "initial_points", "absolute_paths", "settings_hash", "is_test_point", "read_config", "write_config",
            "RunDir", "Interrupted", "StopFlag", "CONFIG_FILE", "CHECKPOINT_FILE", "MODEL_FILE",
            "INIT_FILE", "METRICS_FILE", "HISTORY_FILE", "PLOT_FILE", "RENDER_DIR"]

@@ -13,20 +13,21 @@ train-view point cloud and seed, through ``refgs.runs.train``; the held-out view
 The fast backend (refgs.fast) is used whenever numba is installed, else the numpy reference
 (about 20 times slower; DEMO_ITERS_REFERENCE iterations unless ``--iters`` says otherwise).
 
-Test PSNR is recorded every T/20 iterations, at the iteration *before* each multiple: FM
-re-initialises the Gaussians' shape and resets their opacity at multiples of its
-re-initialisation interval (paper, Method; refgs.methods.flat_minima_method), so a test render
-taken just after one shows the reset, not what training has reached.
+Test PSNR is recorded every T/20 iterations, at the iteration *before* each multiple, as every
+run measures it (refgs.runs.is_test_point, TRN-07): FM re-initialises the Gaussians' shape and
+resets their opacity at multiples of its re-initialisation interval (paper, Method;
+refgs.methods.flat_minima_method), so a test render taken just after one shows the reset, not
+what training has reached.
 """
 from __future__ import annotations
 
-import importlib.util
 import json
 import time
 from pathlib import Path
 
 import numpy as np
 
+from ..backends import default_backend
 from ..errors import ConfigError
 from ..io.atomic import atomic_path
 from ..methods import method_params
@@ -58,11 +59,6 @@ FIGURE_FILE = "comparison.png"
 SHOWN_VIEW = 0
 
 
-def default_backend() -> str:
-    """"fast" when numba is importable, else "reference"."""
-    return "fast" if importlib.util.find_spec("numba") is not None else "reference"
-
-
 def demo_schedule(iters: int) -> dict:
     """PROTOCOL_SCHEDULE scaled to ``iters`` iterations (each at least 1)."""
     return {k: max(1, round(v * iters / PROTOCOL_ITERS)) for k, v in PROTOCOL_SCHEDULE.items()}
@@ -79,15 +75,8 @@ def demo_config(method: str, scene: str, iters: int, backend: str, seed: int) ->
     return TrainConfig.with_preset(
         "dropgaussian", densify, scene=scene, views=DEMO_VIEWS, iters=iters, seed=seed,
         images="images", method=method, method_params=method_params(method, given),
-        backend=backend, init_points="train-views", checkpoint_every=0, eval_every=0)
-
-
-def _early_eval(every: int):
-    """runs.train callback: test PSNR at t = k ``every`` - 1 (module docstring)."""
-    def callback(trainer, _stop) -> None:
-        if (trainer.t + 1) % every == 0 and trainer.t < trainer.cfg.iters:
-            trainer.test_psnr()
-    return callback
+        backend=backend, init_points="train-views", checkpoint_every=0,
+        eval_every=sched["eval_every"])
 
 
 def comparison_figure(run_dirs: dict, path: Path, view: int = SHOWN_VIEW) -> Path:
@@ -168,8 +157,7 @@ def run_demo(out: str | Path | None = None, iters: int | None = None,
     dirs, metrics = {}, {}
     for method in DEMO_METHODS:
         cfg = demo_config(method, scene, iters, backend, seed)
-        dirs[method] = runs.train(cfg, out / method, progress=progress, callback=_early_eval(demo_schedule(iters)["eval_every"]),
-                                  command=["refgs", "demo"])
+        dirs[method] = runs.train(cfg, out / method, progress=progress, command=["refgs", "demo"])
         metrics[method] = json.loads((dirs[method] / runs.METRICS_FILE).read_text())
     figure = comparison_figure(dirs, out / FIGURE_FILE)
     seconds = time.perf_counter() - t0
@@ -181,5 +169,5 @@ def run_demo(out: str | Path | None = None, iters: int | None = None,
 
 
 __all__ = ["run_demo", "demo_config", "demo_schedule", "comparison_figure", "summary_table",
-           "default_backend", "DEMO_VIEWS", "DEMO_ITERS", "DEMO_ITERS_REFERENCE", "DEMO_METHODS", "PROTOCOL_ITERS",
+           "DEMO_VIEWS", "DEMO_ITERS", "DEMO_ITERS_REFERENCE", "DEMO_METHODS", "PROTOCOL_ITERS",
            "PROTOCOL_SCHEDULE", "DEMO_SCENE_SIZE", "FIGURE_FILE"]

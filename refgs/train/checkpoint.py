@@ -137,12 +137,12 @@ def blas_kernel() -> str | None:
 def numba_cpu() -> str | None:
     """The CPU numba compiles the fast backend for (``NUMBA_CPU_NAME``, else LLVM's host CPU),
     None without llvmlite."""
-    import importlib.util
     if os.environ.get("NUMBA_CPU_NAME"):
         return os.environ["NUMBA_CPU_NAME"]
-    if importlib.util.find_spec("llvmlite") is None:
+    try:
+        from llvmlite import binding
+    except ImportError:
         return None
-    from llvmlite import binding
     return binding.get_host_cpu_name()
 
 
@@ -152,6 +152,13 @@ def float_environment() -> dict:
     import numpy
     return {"numpy": numpy.__version__, "numpy_simd": numpy_simd_level(),
             "blas": blas_kernel(), "numba_cpu": numba_cpu()}
+
+
+def float_environment_key(env: dict | None = None) -> str:
+    """``float_environment()`` (or ``env``) as one line, fields in FLOAT_ENV_FIELDS order: the key
+    under which a machine's bit-for-bit digests are pinned (TRN-13)."""
+    env = float_environment() if env is None else env
+    return "; ".join(f"{k} {env.get(k)}" for k in FLOAT_ENV_FIELDS)
 
 
 def peak_rss_gb() -> float:
@@ -209,5 +216,5 @@ def provenance() -> dict:
 
 
 __all__ = ["save_checkpoint", "load_checkpoint", "provenance", "source_hash", "peak_rss_gb",
-           "cpu_name", "float_environment", "numpy_simd_level", "blas_kernel", "numba_cpu",
+           "cpu_name", "float_environment", "float_environment_key", "numpy_simd_level", "blas_kernel", "numba_cpu",
            "FLOAT_ENV_FIELDS", "rng_state", "rng_from_state", "CheckpointError", "CHECKPOINT_VERSION"]

@@ -165,8 +165,24 @@ def _cat(a: dict, b: dict) -> dict:
     return {k: np.concatenate([a[k], b[k]], axis=0) for k in a}
 
 
+def budget_threshold(grads: np.ndarray, threshold: float, room: int) -> float:
+    """The densification threshold that admits at most ``room`` candidates (TRN-14 budget): each
+    candidate (a clone, or a split: two children for one parent) adds one row, so the best
+    ``room`` gradients are kept. Returns ``threshold`` when at most ``room`` reach it, else just
+    above the (room+1)-th largest gradient (so ties at the cut are all left out), inf when
+    ``room`` <= 0."""
+    if room <= 0:
+        return float("inf")
+    over = grads[grads >= threshold]
+    if len(over) <= room:
+        return float(threshold)
+    cut = np.partition(over, len(over) - room - 1)[len(over) - room - 1]
+    return float(np.nextafter(cut, np.inf))
+
+
 def densify_and_prune(params: dict, stats: DensifyStats, adam, cfg: DensifyConfig, extent: float,
-                      size_threshold_active: bool, rng: np.random.Generator) -> Remap:
+                      size_threshold_active: bool, rng: np.random.Generator,
+                      max_new: int | None = None) -> Remap:
     """Clone, split and prune (TRN-05), in 3DGS' order; replaces the arrays of ``params``,
     remaps ``adam`` and resets ``stats``.  Returns the Remap.
 
@@ -178,6 +194,9 @@ def densify_and_prune(params: dict, stats: DensifyStats, adam, cfg: DensifyConfi
        s / (SPLIT_SCALE_FACTOR * SPLIT_N); the parents are removed.
     3. prune opacity < min_opacity and, if ``size_threshold_active``, max scale > max_world_size
        * extent or (screen_size_rule "accumulated") max radius > max_screen_size.
+
+    ``max_new``: None (the paper's protocol), or at most this many new rows: the threshold of
+    steps 1-2 is raised to ``budget_threshold`` (TRN-14).
     """
     n0 = len(params["means"])
     dt = params["means"].dtype
@@ -185,8 +204,10 @@ def densify_and_prune(params: dict, stats: DensifyStats, adam, cfg: DensifyConfi
     scales = np.exp(params["log_scales"].astype(np.float64))
     smax = scales.max(axis=1)
     dense_limit = cfg.percent_dense * extent
+    threshold = cfg.grad_threshold if max_new is None else budget_threshold(
+        grads, cfg.grad_threshold, max_new)
 
-    clone = np.flatnonzero((grads >= cfg.grad_threshold) & (smax <= dense_limit))
+    clone = np.flatnonzero((grads >= threshold) & (smax <= dense_limit))
     p1 = _cat(params, _rows(params, clone))
     src1 = np.concatenate([np.arange(n0), clone])
     fresh1 = np.concatenate([np.zeros(n0, bool), np.ones(len(clone), bool)])
@@ -194,7 +215,7 @@ def densify_and_prune(params: dict, stats: DensifyStats, adam, cfg: DensifyConfi
     s1 = np.concatenate([scales, scales[clone]])
     r1 = np.concatenate([stats.max_radii, np.zeros(len(clone))])
 
-    split = (g1 >= cfg.grad_threshold) & (s1.max(axis=1) > dense_limit)
+    split = (g1 >= threshold) & (s1.max(axis=1) > dense_limit)
     sel = np.flatnonzero(split)
     stds = np.tile(s1[sel], (SPLIT_N, 1))
     samples = rng.standard_normal(stds.shape) * stds
@@ -224,6 +245,19 @@ def densify_and_prune(params: dict, stats: DensifyStats, adam, cfg: DensifyConfi
                  n_pruned=int(prune.sum()))
 
 
+def prune_rows(params: dict, stats: DensifyStats, adam, keep: np.ndarray) -> Remap:
+    """Keep the rows where ``keep`` (N,) bool is true (TRN-14 contribution pruning): parameters,
+    Adam moments and the densification statistics follow their rows (the statistics are not
+    reset: pruning is not a densification step)."""
+    keep = np.asarray(keep, bool)
+    rows = np.flatnonzero(keep)
+    params.update(_rows(params, rows))
+    adam.remap(rows)
+    stats.grad_accum, stats.denom, stats.max_radii = (
+        stats.grad_accum[rows], stats.denom[rows], stats.max_radii[rows])
+    return Remap(source=rows, parent=rows, n_cloned=0, n_split=0, n_pruned=int((~keep).sum()))
+
+
 def reset_opacity(params: dict, adam) -> None:
     """opacity <- min(opacity, OPACITY_RESET_VALUE) through the inverse sigmoid; the opacity's
     Adam moments are zeroed, its step count kept (TRN-06)."""
@@ -234,5 +268,5 @@ def reset_opacity(params: dict, adam) -> None:
 
 
 __all__ = ["DensifyConfig", "DensifyStats", "Remap", "DENSIFY_PRESETS", "densify_preset",
-           "densify_and_prune", "reset_opacity", "NDC_PER_PIXEL_HALF", "SPLIT_N",
+           "densify_and_prune", "budget_threshold", "prune_rows", "reset_opacity", "NDC_PER_PIXEL_HALF", "SPLIT_N",
            "SPLIT_SCALE_FACTOR", "OPACITY_RESET_VALUE", "SCREEN_SIZE_RULES"]

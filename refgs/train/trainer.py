@@ -3,13 +3,15 @@
 The data flow of one iteration t (1-based, as 3DGS ``train.py``@82bc469; peers.md 1.6, 1.7, 3.1),
 ``Trainer.step``::
 
-    scene view, background        pop a view from the shuffled stack; draw the background  TRN-07
+    scene view, background        pop a view from the shuffled stack; draw the background;
+                                  the strategy's training view (TRN-14: resolution)     TRN-07
     Gaussians to render           method.before_render  (theta, or theta_hat / opacity_scale)  TRN-08
     render (backend)              backend.render; clamp the image to [0, 1]             TRN-01
     loss                          L1 + 0.2 (1 - SSIM) against the view's image          TRN-01, MET-08
     gradients                     backend.render_backward; method.after_backward        TRN-01, TRN-08
-    densification                 statistics, densify-and-prune (method.on_densify),
-                                  opacity reset, while t < until                        TRN-04..TRN-06
+    densification                 the strategy (refgs.train.strategy): statistics,
+                                  densify-and-prune (method.on_densify), opacity reset,
+                                  while t < until; compact: budget, pruning      TRN-04..TRN-06, TRN-14
     optimizer step                Adam at the learning rates of t, leaving
                                   method.frozen_rows alone; not at t = T, not for the
                                   tensors replaced by densification (as 3DGS)           TRN-02, TRN-03
@@ -31,10 +33,11 @@ from ..errors import ConfigError, RefgsError
 from ..metrics.psnr import psnr
 from ..types import Gaussians, RenderConfig
 from .adam import Adam
-from .densify import DensifyConfig, DensifyStats, densify_and_prune, densify_preset, reset_opacity
+from .densify import DensifyConfig, DensifyStats, densify_preset
 from .hooks import Method
 from .loss import FORM_L1_PLUS, LAMBDA_DSSIM, LOSS_FORMS, photometric_loss
 from .schedule import SH_MAX_DEGREE, learning_rates, sh_degree_at
+from .strategy import CompactConfig, make_strategy
 
 #: Background choices: black (DropGaussian default, ``random_background False``), white
 #: (3DGS ``--white_background``), random (3DGS ``--random_background``: a uniform colour per
@@ -46,6 +49,8 @@ LOSS_EMA_WEIGHT = 0.4
 RNG_STREAMS = ("views", "densify", "method")
 DTYPES = {"float64": np.float64, "float32": np.float32}
 PARAM_NAMES = Gaussians.FIELDS
+#: History curves of integer counts (kept as int through checkpoints).
+COUNT_CURVES = ("n_gaussians", "fragments")
 #: The method a trainer built without a method object runs (plain 3DGS, DG-02).
 PLAIN_METHOD = Method.name
 
@@ -80,6 +85,10 @@ class TrainConfig:
     clamp_render: bool = True
     densify_preset: str = "dropgaussian"
     densify: DensifyConfig = field(default_factory=DensifyConfig)
+    #: None: the paper's densification (PaperStrategy); else the compact strategy's settings
+    #: (TRN-14). Left out of ``to_dict`` when None, so the settings (and their hash) of runs
+    #: made before it existed stay what they were.
+    compact: CompactConfig | None = None
     holdout: int = 8
     triangulation: str = "tuned"
     lpips: bool = True
@@ -114,6 +123,8 @@ class TrainConfig:
         if self.profile not in ("inria", "gsplat"):
             raise ConfigError(f"--profile: expected inria or gsplat, got {self.profile!r}")
         self.densify.validate()
+        if self.compact is not None:
+            self.compact.validate()
         return self
 
     @property
@@ -124,6 +135,10 @@ class TrainConfig:
     def to_dict(self) -> dict:
         d = asdict(self)
         d["densify"] = self.densify.to_dict()
+        if self.compact is None:
+            del d["compact"]
+        else:
+            d["compact"] = self.compact.to_dict()
         return d
 
     @staticmethod
@@ -134,6 +149,8 @@ class TrainConfig:
             raise ConfigError(f"config.json: unknown settings {sorted(unknown)}")
         kw = dict(d)
         kw["densify"] = DensifyConfig(**kw.get("densify", {}))
+        if kw.get("compact") is not None:
+            kw["compact"] = CompactConfig.from_dict(kw["compact"])
         return TrainConfig(**kw)
 
     @staticmethod
@@ -181,14 +198,17 @@ class Trainer:
         self.extent = float(extent)
         self.backend = backend
         self.method = method
+        self.strategy = make_strategy(cfg.compact)
         self.adam = Adam(self.params, kernel=getattr(self.backend, "adam_update", None))
         self.stats = DensifyStats(len(self.params["means"]))
         self.t = 0
         seeds = np.random.SeedSequence(int(cfg.seed)).spawn(len(RNG_STREAMS))
         self.rngs = {k: np.random.Generator(np.random.PCG64(s)) for k, s in zip(RNG_STREAMS, seeds)}
         self.view_stack: list[int] = []
+        #: per-iteration curves (train_*, n_gaussians, fragments: the render's pixel-Gaussian
+        #: pairs, TRN-14; seconds) and the test points (test_t, test_psnr; TRN-07)
         self.history = {k: [] for k in ("train_t", "train_loss", "train_psnr", "test_t",
-                                        "test_psnr", "n_gaussians", "iter_seconds",
+                                        "test_psnr", "n_gaussians", "fragments", "iter_seconds",
                                         "iter_cpu_seconds")}
         self.train_seconds = 0.0
         self.loss_ema = 0.0
@@ -220,6 +240,7 @@ class Trainer:
         t = self.t + 1
         # scene view -> Gaussians to render (the method's hook: theta, theta_hat, opacity scale)
         view, background = self.next_view()
+        view = self.strategy.training_view(self, view, t)
         request = method.before_render(self, t, self.rngs["method"])
         rcfg = RenderConfig(profile=cfg.profile, sh_degree=sh_degree_at(t, cfg.sh_degree),
                             background=background, opacity_scale=request.opacity_scale)
@@ -240,7 +261,9 @@ class Trainer:
         self.loss_ema = LOSS_EMA_WEIGHT * loss + (1 - LOSS_EMA_WEIGHT) * self.loss_ema
         seconds = time.perf_counter() - t0
         for key, v in (("train_t", t), ("train_loss", loss), ("train_psnr", value),
-                       ("n_gaussians", self.n), ("iter_seconds", seconds),
+                       ("n_gaussians", self.n),
+                       ("fragments", int(np.sum(out.n_contrib, dtype=np.int64))),
+                       ("iter_seconds", seconds),
                        ("iter_cpu_seconds", time.process_time() - c0)):
             self.history[key].append(v)
         self.train_seconds += seconds
@@ -260,25 +283,10 @@ class Trainer:
         return view, background
 
     def densification(self, t: int, grads, out, view: View) -> set:
-        """Adaptive density control of iteration t (TRN-04..TRN-06): accumulate the screen-space
-        statistics of the render, densify-and-prune at its interval (then ``method.on_densify``),
-        reset opacity at its interval.  Returns the names of the parameter tensors replaced, which
-        take no Adam step this iteration (as 3DGS: a replaced tensor has no gradient)."""
-        cfg, dcfg = self.cfg, self.cfg.densify
-        replaced: set = set()
-        if t >= dcfg.resolved_until(cfg.iters):
-            return replaced
-        self.stats.accumulate(grads.means2d, out.radii, view.camera.width, view.camera.height)
-        if t > dcfg.start and t % dcfg.interval == 0:
-            size_active = dcfg.size_prune and t > dcfg.opacity_reset_interval
-            remap = densify_and_prune(self.params, self.stats, self.adam, dcfg, self.extent,
-                                      size_active, self.rngs["densify"])
-            self.method.on_densify(self, remap)
-            replaced = set(PARAM_NAMES)
-        if t % dcfg.opacity_reset_interval == 0 or (cfg.background == "white" and t == dcfg.start):
-            reset_opacity(self.params, self.adam)
-            replaced.add("opacity_logits")
-        return replaced
+        """Adaptive density control of iteration t by the run's strategy (TRN-04..TRN-06,
+        TRN-14; refgs.train.strategy); returns the names of the parameter tensors replaced,
+        which take no Adam step this iteration (as 3DGS: a replaced tensor has no gradient)."""
+        return self.strategy.densification(self, t, grads, out, view)
 
     def loss_and_grads(self, gaussians: Gaussians, view: View, rcfg: RenderConfig, t: int):
         """Render ``gaussians`` from ``view``, the loss against its image and the backward
@@ -341,7 +349,10 @@ class Trainer:
         self.stats.load_state_arrays(arrays)
         for k in self.history:
             vals = np.asarray(arrays.get(f"history/{k}", []), np.float64).tolist()
-            self.history[k] = [int(v) for v in vals] if k.endswith("_t") or k == "n_gaussians" else vals
+            self.history[k] = [int(v) for v in vals] if k.endswith("_t") or k in COUNT_CURVES else vals
+        # a checkpoint from before the fragment count: -1 (not measured) for its iterations
+        missing = len(self.history["train_t"]) - len(self.history["fragments"])
+        self.history["fragments"] = [-1] * missing + self.history["fragments"]
         self.method.load_state_arrays({k[7:]: v for k, v in arrays.items() if k.startswith("method/")})
         init = {k[5:]: np.asarray(v) for k, v in arrays.items() if k.startswith("init/")}
         self.init_cloud = init or None
