@@ -5,6 +5,7 @@ key, and new training code is accepted only when it reproduces the pinned run bi
 from __future__ import annotations
 
 import json
+import re
 import tomllib
 from pathlib import Path
 
@@ -13,6 +14,7 @@ import pytest
 from scipy import stats
 
 from refgs.analysis import equivalence
+from refgs.train.checkpoint import float_environment_key
 from refgs.analysis.report import load_runs, markers, report_markdown, split_document
 from refgs.analysis.report_spec import load_report
 from refgs.cli import main as refgs_main
@@ -206,14 +208,14 @@ def pinned_grid(tmp_path, pins: str = "") -> Path:
 
 def test_new_code_is_accepted_only_with_the_pinned_digest(tmp_path, monkeypatch):
     """The check's logic with the pinned run replaced: the reference code pins the digest of
-    this CPU level, equal code is appended to [[report.code]], different code is refused."""
-    level = equivalence.cpu_level()
+    this float environment, equal code is appended to [[report.code]], different code is refused."""
+    level = float_environment_key()
     made = {"reference": ("d" * 64, CODE), "current": ("d" * 64, "new0000000000001")}
     monkeypatch.setattr(equivalence, "run_code", lambda root, argv, out: made[out.name])
     monkeypatch.setattr(equivalence, "source_hash", lambda: "new0000000000001")
     grid = pinned_grid(tmp_path)
-    with pytest.raises(ConfigError, match=f"--reference-code: .* no pinned digest for CPU level "
-                                          f"{level}"):
+    with pytest.raises(ConfigError, match="--reference-code: .* no pinned digest for the float "
+                                          f"environment {re.escape(level)}"):
         equivalence.check_equivalence(load_report(grid))
     verdict = equivalence.check_equivalence(load_report(grid), str(tmp_path))
     assert verdict.startswith("new0000000000001: accepted by")
@@ -245,7 +247,7 @@ def test_the_pinned_run_is_reproduced_bit_for_bit(tmp_path):
     assert code == equivalence.source_hash()
     grid.write_text(grid.read_text().replace(f'hash = "{CODE}"', 'hash = "other00000000000"'))
     equivalence.append_entry(grid, "report.equivalence.pin", {
-        "cpu": equivalence.cpu_level(), "digest": digest, "code": "other00000000000"})
+        "float_environment": float_environment_key(), "digest": digest, "code": "other00000000000"})
     assert equivalence.check_equivalence(load_report(grid)).startswith(f"{code}: accepted")
     assert code in load_report(grid).code
 

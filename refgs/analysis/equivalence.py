@@ -9,10 +9,10 @@ dozen iterations of a small scene, with densification and the method's re-initia
 it), and the run's digest -- sha256 of its final model's vertex data (model.ply) -- must equal the
 digest accepted code gives.
 
-Float results differ between CPUs of different SIMD levels (numba compiles for the host: AVX2
-and AVX-512 kernels round differently), so the accepted digest is pinned per CPU level
-(``cpu_level``: numpy's highest SIMD extension found on the machine) in
-``[[report.equivalence.pin]]`` entries.  On a level with no pin yet, ``--reference-code DIR`` (a
+Float results differ between machines of different float environments (docs/spec/training.md
+TRN-13: numpy's SIMD level and BLAS kernel, the CPU numba compiles for), so the accepted digest is
+pinned per float environment (``float_environment``: refgs.train.checkpoint.float_environment_key)
+in ``[[report.equivalence.pin]]`` entries.  On an environment with no pin yet, ``--reference-code DIR`` (a
 checkout of code the grid accepts, e.g. ``git archive COMMIT refgs | tar -x -C DIR``) makes the
 pinned run on this machine first, and its digest becomes the level's pin: the new code is then
 compared with accepted code side by side.  An accepted hash is appended to the grid file as a
@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import hashlib
 import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -35,7 +34,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..io.atomic import atomic_write_text
-from ..train.checkpoint import source_hash
+from ..train.checkpoint import float_environment_key, source_hash
 from .report_spec import Report, load_report
 
 #: The run's model, whose vertex data is digested (refgs.runs writes it at the end of a run).
@@ -43,14 +42,6 @@ MODEL_FILE = "model.ply"
 #: Lines of a failed run's stderr quoted in the error.
 STDERR_TAIL = 3
 SOURCE_HASH_CODE = "from refgs.train.checkpoint import source_hash; print(source_hash())"
-
-
-def cpu_level() -> str:
-    """numpy's highest SIMD extension found on this machine (``X86_V3`` for AVX2, ``X86_V4`` /
-    ``AVX512_*`` for AVX-512, ``ASIMD`` ...), the machine name where numpy reports none."""
-    simd = (np.show_config(mode="dicts") or {}).get("SIMD Extensions") or {}
-    found = list(simd.get("found") or []) or list(simd.get("baseline") or [])
-    return found[-1] if found else platform.machine()
 
 
 def model_digest(path: Path) -> str:
@@ -116,13 +107,13 @@ def check_equivalence(report: Report, reference_code: str | None = None) -> str:
         return f"{current}: already accepted by {report.name}"
     argv, pins = report.equivalence
     accepted = ", ".join(report.code) or "none"
-    level = cpu_level()
-    pinned = {cpu: (digest, code) for cpu, digest, code in pins}
+    level = float_environment_key()
+    pinned = {env: (digest, code) for env, digest, code in pins}
     with tempfile.TemporaryDirectory(prefix="refgs-equivalence-") as tmp:
         if level not in pinned:
             if reference_code is None:
-                raise ConfigError(f"--reference-code: {report.grid} has no pinned digest for CPU "
-                                  f"level {level}; give a checkout of accepted code ({accepted}) "
+                raise ConfigError(f"--reference-code: {report.grid} has no pinned digest for the "
+                                  f"float environment {level}; give a checkout of accepted code ({accepted}) "
                                   "to pin it on this machine")
             digest, code = run_code(Path(reference_code).absolute(), list(argv),
                                     Path(tmp) / "reference")
@@ -130,20 +121,20 @@ def check_equivalence(report: Report, reference_code: str | None = None) -> str:
                 raise ConfigError(f"--reference-code: {reference_code} holds code {code}, not "
                                   f"code {report.name} accepts ({accepted})")
             append_entry(report.grid, "report.equivalence.pin",
-                         {"cpu": level, "digest": digest, "code": code, "date": today()})
+                         {"float_environment": level, "digest": digest, "code": code, "date": today()})
             pinned[level] = (digest, code)
         digest, code = run_code(code_root(), list(argv), Path(tmp) / "current")
     want, by = pinned[level]
     if digest != want:
-        raise ConfigError(f"{report.name}: code {code} does not reproduce the pinned run on CPU "
-                          f"level {level} (model digest {digest[:16]}, accepted code {by} gives "
+        raise ConfigError(f"{report.name}: code {code} does not reproduce the pinned run on the "
+                          f"float environment {level} (model digest {digest[:16]}, accepted code {by} gives "
                           f"{want[:16]}): its records do not count; rerun them with code "
                           f"{report.name} accepts")
     append_entry(report.grid, "report.code", {
         "hash": code, "how": f"reproduces the pinned run ([report.equivalence]) bit for bit on "
-                             f"CPU level {level}: model digest {digest[:16]}, as code {by}",
+                             f"float environment {level}: model digest {digest[:16]}, as code {by}",
         "date": today()})
     return f"{code}: accepted by {report.name} (same pinned run as {by} on {level})"
 
 
-__all__ = ["check_equivalence", "cpu_level", "model_digest", "run_code", "append_entry"]
+__all__ = ["check_equivalence", "model_digest", "run_code", "append_entry"]

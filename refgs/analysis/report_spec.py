@@ -227,7 +227,8 @@ def read_code(path: Path, data) -> tuple:
 
 
 def read_equivalence(path: Path, data) -> tuple:
-    """(train argv of the pinned run, [(cpu level, digest)]) of ``[report.equivalence]``."""
+    """(train argv of the pinned run, [(float environment key, digest, code)]) of
+    ``[report.equivalence]``."""
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: {REPORT_KEY}.equivalence: expected a table")
     options = {k: v for k, v in data.items() if k != "pin"}
@@ -235,7 +236,7 @@ def read_equivalence(path: Path, data) -> tuple:
     pins = []
     for k, entry in enumerate(data.get("pin", [])):
         p = Table(path, f"{REPORT_KEY}.equivalence.pin[{k}]", entry)
-        pins.append((p.take("cpu", str, required=True), p.take("digest", str, required=True),
+        pins.append((p.take("float_environment", str, required=True), p.take("digest", str, required=True),
                      p.take("code", str, required=True)))
         p.take("date", str)
         p.done()
