@@ -124,6 +124,24 @@ BACKENDS: dict[str, Entry] = {e.name: e for e in (
 )}
 
 
+#: The trainer's backends, fastest first: ``refgs train`` and ``refgs demo`` without ``--backend``
+#: use the first that loads here (refgs.fast, certified by the oracle: docs/conformance.md; about
+#: 17 times the reference's speed on fern, TRN-12).  Every run records the name it used.
+TRAIN_PREFERENCE = ("fast", "reference")
+
+
+def default_backend() -> str:
+    """The first name of TRAIN_PREFERENCE whose code imports on this machine ("fast" when numba
+    imports, else "reference")."""
+    for name in TRAIN_PREFERENCE:
+        try:
+            importlib.import_module(BACKENDS[name].target.partition(":")[0])
+        except ImportError:
+            continue
+        return name
+    return TRAIN_PREFERENCE[-1]
+
+
 def register_backend(entry: Entry) -> None:
     """Make ``entry`` available under ``entry.name`` (a later registration replaces one)."""
     BACKENDS[str(entry.name)] = entry
@@ -340,4 +358,4 @@ class ReferenceBackend:
 
 __all__ = ["BACKENDS", "Entry", "Backend", "BackendUnavailable", "ReferenceBackend",
            "get_backend", "register_backend", "available_backends", "import_object",
-           "DEFAULT_PROFILE", "DEFAULT_DTYPE", "HELPERS"]
+           "default_backend", "DEFAULT_PROFILE", "DEFAULT_DTYPE", "HELPERS", "TRAIN_PREFERENCE"]
