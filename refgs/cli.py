@@ -1,7 +1,8 @@
 """The ``refgs`` command: argument parsing and dispatch only (docs/spec/training.md).
 
     refgs train --scene DIR --views N --iters N --out DIR [--images images_8] [--resolution R]
-                [--method 3dgs] [--seed S] [--backend reference] [--init-points train-views|sfm-all|PATH.ply]
+                [--method 3dgs] [--seed S] [--backend fast|reference|module:object]
+                [--init-points train-views|sfm-all|PATH.ply]
                 [--checkpoint-every K] [--eval-every K] [--strict] [--dtype float64|float32] ...
     refgs train --resume RUN_DIR
     refgs eval RUN_DIR [--model PATH.ply] [--no-lpips]
@@ -104,8 +105,11 @@ def _train_command(args, argv) -> Path:
                               f"do not also give --{given[0]}")
         run_dir = runs.resume(args.resume, progress=not args.quiet)
     else:
-        run_dir = runs.train(config_from_args(args), args.out, progress=not args.quiet,
-                             command=["refgs", *argv])
+        cfg = config_from_args(args)
+        if args.backend is None and not args.quiet:
+            print(f"backend: {cfg.backend} (the fastest that loads here; --backend reference "
+                  f"for the numpy reference)")
+        run_dir = runs.train(cfg, args.out, progress=not args.quiet, command=["refgs", *argv])
     if not args.quiet:
         print(f"run directory: {run_dir}")
     return run_dir

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import argparse
 
-from ..backends import available_backends
+from ..backends import TRAIN_PREFERENCE, available_backends, default_backend
 from ..errors import ConfigError
 from ..methods import METHOD_NAMES, method_params
 from ..methods.flat_minima import CLAMP_MODES, PERTURB_TARGETS
@@ -40,8 +40,10 @@ def add_train_options(t: argparse.ArgumentParser) -> None:
     t.add_argument("--method", default="3dgs", choices=sorted(METHOD_NAMES))
     t.add_argument("--iters", type=int, help="iterations T (all schedule horizons use T)")
     t.add_argument("--seed", type=int, default=0)
-    t.add_argument("--backend", default="reference",
-                   help=f"one of {', '.join(available_backends())}, or module:object")
+    t.add_argument("--backend",
+                   help=f"one of {', '.join(available_backends())}, or module:object (default: "
+                        f"the first of {', '.join(TRAIN_PREFERENCE)} that loads here: fast when "
+                        f"numba imports; the run records the name)")
     t.add_argument("--out", help="run directory to create")
     t.add_argument("--init-points", default="train-views", metavar="train-views|sfm-all|PATH.ply")
     t.add_argument("--checkpoint-every", type=int, default=1000, metavar="K", help="0: only on Ctrl-C")
@@ -101,7 +103,8 @@ def config_from_args(args) -> TrainConfig:
         args.densify_preset, {k: getattr(args, k) for k in DENSIFY_FLAGS},
         scene=args.scene, views=args.views, iters=args.iters, seed=args.seed, images=args.images,
         resolution=args.resolution, method=args.method,
-        method_params=method_params(args.method, given, fm=bool(args.fm)), backend=args.backend,
+        method_params=method_params(args.method, given, fm=bool(args.fm)),
+        backend=args.backend or default_backend(),
         init_points=args.init_points, checkpoint_every=args.checkpoint_every,
         eval_every=args.eval_every, strict=args.strict, dtype=args.dtype, profile=args.profile,
         sh_degree=args.sh_degree, background=args.background, loss_form=args.loss_form,
