@@ -24,8 +24,10 @@ ROOT = Path(__file__).resolve().parents[1]
 FERN = ROOT.parent / "shared" / "data" / "fern"
 needs_fern = pytest.mark.skipif(not (FERN / "sparse").is_dir(), reason="needs ../shared/data/fern")
 
-#: A tiny run (seconds): fern at 1/8 of images_8, 2 iterations, the reference backend.
-TINY = dict(views=3, iters=2, resolution=8, no_lpips=True, checkpoint_every=1, eval_every=0)
+#: A tiny run (seconds): fern at 1/8 of images_8, 2 iterations, the reference backend (named:
+#: a grid without backend gets the fastest that loads, refgs.backends.default_backend).
+TINY = dict(views=3, iters=2, resolution=8, no_lpips=True, checkpoint_every=1, eval_every=0,
+            backend="reference")
 #: The kill test's runs: 2 methods x 2 seeds, a few seconds each (fern at 1/8 of images_8, 40
 #: iterations), a checkpoint every 5 iterations, the fast backend.
 KILL_GRID = f"""scene = "{FERN}"
