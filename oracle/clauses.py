@@ -46,11 +46,12 @@ class Clause:
 
 
 def default_spec_dir() -> Path:
-    """docs/spec of this checkout (or ``$REFGS_SPEC_DIR``)."""
+    """``$REFGS_SPEC_DIR``, else the spec beside this module: ``oracle/spec``, a link to
+    docs/spec in a checkout and a copy of it in an installed wheel (pyproject package-data)."""
     env = os.environ.get(SPEC_DIR_ENV)
     if env:
         return Path(env)
-    return Path(__file__).resolve().parents[1] / "docs" / "spec"
+    return Path(__file__).resolve().parent / "spec"
 
 
 def load_clauses(spec_dir: str | os.PathLike | None = None) -> dict[str, Clause]:

@@ -192,28 +192,7 @@ def summary_text(run) -> str:
     if fails:
         lines += ["", "FAILURES"]
         for r in fails:
-            f = r.failure or {"message": "(no details)"}
-            blamed = ", ".join((r.blame or {}).get("blamed", {})) or (
-                "no clause: unattributed" if (r.blame or {}).get("unattributed") else r.check.clauses[0])
-            lines.append(f"  {r.status.upper()} {r.check.name} [{blamed}]: {f['message']}")
-            if f.get("signature"):
-                lines.append(f"    behaves like the reference with {f['signature']['label']} "
-                             f"(the minimal case keeps this deviation signature)")
-            spared = (r.blame or {}).get("spared", {})
-            if spared:
-                lines.append("    not blamed: " + "; ".join(f"{c} ({why})" for c, why in spared.items()))
-            sc = f.get("scene")
-            if sc is None:
-                continue
-            lines.append(f"    smallest scene: N={sc['n_gaussians']}, {sc['width']}x{sc['height']} px, "
-                         f"profile {sc['profile']}, sh_degree {sc['sh_degree']}, K={sc['sh_coeffs']}, "
-                         f"background {sc['background']}, from {sc['label']!r}")
-            if f.get("parameters"):
-                for line in f["parameters"]:
-                    lines.append(f"      {line}")
-            if f.get("reproducer"):
-                lines.append(f"    reproducer: {f['reproducer']}")
-                lines.append(f"    replay: {f['replay']}")
+            lines += failure_lines(r)
     if run.diagnosis is not None:
         dg = run.diagnosis
         lines += ["", "DIAGNOSIS (docs/spec/deviations.md DEV-02): " + dg["summary"]]
@@ -227,6 +206,33 @@ def summary_text(run) -> str:
               + "; checks: " + ", ".join(f"{checks[s]} {s}" for s in STATUS_ORDER if checks[s])
               + f"  -> exit status {run.exit_status}"]
     return "\n".join(lines)
+
+
+def failure_lines(r) -> list[str]:
+    """The report's lines for one failing check result (``runner.CheckResult``): status, blamed
+    clauses and message, the clauses spared, the smallest scene, the reproducer and its replay
+    command."""
+    f = r.failure or {"message": "(no details)"}
+    blamed = ", ".join((r.blame or {}).get("blamed", {})) or (
+        "no clause: unattributed" if (r.blame or {}).get("unattributed") else r.check.clauses[0])
+    lines = [f"  {r.status.upper()} {r.check.name} [{blamed}]: {f['message']}"]
+    if f.get("signature"):
+        lines.append(f"    behaves like the reference with {f['signature']['label']} "
+                     f"(the minimal case keeps this deviation signature)")
+    spared = (r.blame or {}).get("spared", {})
+    if spared:
+        lines.append("    not blamed: " + "; ".join(f"{c} ({why})" for c, why in spared.items()))
+    sc = f.get("scene")
+    if sc is None:
+        return lines
+    lines.append(f"    smallest scene: N={sc['n_gaussians']}, {sc['width']}x{sc['height']} px, "
+                 f"profile {sc['profile']}, sh_degree {sc['sh_degree']}, K={sc['sh_coeffs']}, "
+                 f"background {sc['background']}, from {sc['label']!r}")
+    lines += [f"      {line}" for line in f.get("parameters") or ()]
+    if f.get("reproducer"):
+        lines.append(f"    reproducer: {f['reproducer']}")
+        lines.append(f"    replay: {f['replay']}")
+    return lines
 
 
 def scene_parameters(scene: Case, limit: int = 4) -> list[str]:
