@@ -32,8 +32,8 @@ Where it differs from refgs beyond that: ``_quat_to_rotmat`` normalises with ``F
 (eps 1e-12), so a quaternion with |q| < 1e-12 is divided by 1e-12 instead of |q| and Sigma is
 wrong (CNV-05, HARD-06; refgs divides by max|q_k| first).
 The pure-torch SH constants are Sloan's, written with ~15 significant digits (e.g. 0.48860251190292
-vs 0.4886025119029199), and degree-2 uses 0.946 z^2 - 0.315 = C2[2](3z^2 - 1), equal to
-C2[2](2z^2 - x^2 - y^2) only on the unit sphere: float64 agreement is ~1e-15, not ~1e-16.
+vs 0.4886025119029199), and degree-2 uses ``0.946 z^2 - 0.315 = C2[2] (3z^2 - 1)``, equal to
+``C2[2] (2z^2 - x^2 - y^2)`` only on the unit sphere: float64 agreement is ~1e-15, not ~1e-16.
 
 ``render`` needs CUDA (gsplat's rasterizer is a CUDA extension; on CPU ``_rasterize_to_pixels``
 and ``rasterization`` fail, deps.md note 4).  Without it ``unavailable_reason`` says why and
