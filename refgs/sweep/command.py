@@ -1,7 +1,7 @@
 """``refgs sweep`` and ``refgs run-one``: grids of training runs (docs/sweeps.md).
 
     refgs sweep GRID.toml --out DIR [--executor local|ray] [--workers N] [--threads-per-run K]
-                [--dry-run] [--retry-failed] [--list] [--quiet]
+                [--dry-run] [--retry-failed] [--list] [--quiet] [--ray-timeout S]
     refgs run-one GRID.toml --out DIR (--index I | --name NAME) [--quiet]
 
 ``sweep`` runs every run of the grid that is not done (refgs.sweep.executors) and exits with
@@ -17,7 +17,7 @@ import sys
 from pathlib import Path
 
 from .execute import execute_run, watch_parent
-from .executors import DEFAULT_THREADS, EXECUTORS, plan, report, sweep
+from .executors import DEFAULT_RAY_TIMEOUT_S, DEFAULT_THREADS, EXECUTORS, plan, report, sweep
 from .grid import load_grid
 
 #: Exit status when runs failed or did not finish (refgs.cli: 1 = failure, 2 = bad input).
@@ -36,6 +36,9 @@ def add_parser(sub) -> None:
     s.add_argument("--retry-failed", action="store_true", help="run failed runs again")
     s.add_argument("--list", action="store_true", help="the runs: index, name, state")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.add_argument("--ray-timeout", type=float, default=DEFAULT_RAY_TIMEOUT_S, metavar="S",
+                   help=f"seconds to wait for the Ray cluster at RAY_ADDRESS (default "
+                        f"{DEFAULT_RAY_TIMEOUT_S:g})")
     s.set_defaults(handler=lambda a, _: run(a))
     o = sub.add_parser("run-one", help="one run of a grid (a SLURM array task, a Snakemake rule)")
     o.add_argument("grid")
@@ -67,7 +70,7 @@ def run(args) -> dict:
             print(f"{r.index:>4}  {r.name}  {what if args.dry_run else state}")
         return {}
     data = sweep(grid, out, args.executor, args.workers, args.threads_per_run,
-                 args.retry_failed, progress=not args.quiet)
+                 args.retry_failed, progress=not args.quiet, ray_timeout=args.ray_timeout)
     lines = report(data, out, grid.path)
     print("\n".join(lines))
     if any(e["state"] != "done" for e in data["runs"].values()):

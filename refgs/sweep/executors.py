@@ -12,7 +12,9 @@ Executors (each yields the outcome of a run as it finishes, refgs.sweep.execute)
            workers stop (checkpoint and exit) when the sweep dies.
     ray    one Ray task per run with num_cpus = ``threads`` (the same variables through the
            task's runtime_env), retried by Ray when its worker is lost; RAY_ADDRESS when set,
-           else a local Ray started for the sweep with ``workers * threads`` CPUs.  The output
+           else a local Ray started for the sweep with ``workers * threads`` CPUs.  A cluster
+           that does not answer at RAY_ADDRESS within ``--ray-timeout`` seconds (default
+           DEFAULT_RAY_TIMEOUT_S) ends the sweep with one line naming the address.  The output
            folder and the scenes must be on a file system every node sees at the same path.
 
 A run's result does not depend on the executor, the number of workers or threads: the same
@@ -24,6 +26,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import socket
 import subprocess
 import sys
 import threading
@@ -45,6 +48,11 @@ POLL_S = 1.0
 RAY_MAX_RETRIES = 3
 #: Exit status of ``refgs run-one`` when its run was interrupted (refgs.cli: 128 + SIGINT).
 EXIT_INTERRUPTED = 130
+#: Seconds ``--executor ray`` waits for the cluster at RAY_ADDRESS to answer (``--ray-timeout``):
+#: a mistyped address fails in this time with one line instead of Ray's retries (minutes).
+DEFAULT_RAY_TIMEOUT_S = 20.0
+#: The scheme of a Ray client address (``ray://host:10001``).
+RAY_CLIENT_SCHEME = "ray://"
 
 
 def default_workers(threads: int) -> int:
@@ -165,18 +173,75 @@ def ray_task(grid_path: str, out: str, name: str) -> dict:
             return {"name": name, "index": run.index, "state": "pending", "error": None}
 
 
-def run_ray(grid, out: Path, todo: list, workers: int, threads: int):
-    """Yield each run's outcome as it finishes (None every POLL_S seconds in between)."""
+def ray_endpoint(address: str) -> tuple[str, int] | None:
+    """(host, port) of a RAY_ADDRESS that names one (``host:port``, ``ray://host:port``); None
+    for the words Ray resolves itself (``auto``, ``local``)."""
+    host, sep, port = address.strip().removeprefix(RAY_CLIENT_SCHEME).rpartition(":")
+    if not sep or not port.isdigit():
+        return None
+    return host.strip("[]") or "127.0.0.1", int(port)
+
+
+def check_ray(timeout: float = DEFAULT_RAY_TIMEOUT_S):
+    """The ray module, once ray imports and the cluster at RAY_ADDRESS (when set) accepts a
+    connection within ``timeout`` seconds; ConfigError of one line naming the address
+    otherwise."""
     try:
         import ray
     except ImportError:
         raise ConfigError("--executor ray: ray is not installed (pip install 'refgs[ray]')"
                           ) from None
+    if timeout <= 0:
+        raise ConfigError(f"--ray-timeout: expected a positive number of seconds, got {timeout:g}")
+    address = os.environ.get("RAY_ADDRESS")
+    endpoint = ray_endpoint(address) if address else None
+    if endpoint is not None:
+        try:
+            socket.create_connection(endpoint, timeout=timeout).close()
+        except OSError as exc:
+            why = (f"no answer within {timeout:g} s" if isinstance(exc, TimeoutError)
+                   else (exc.strerror or str(exc)).lower())
+            raise ConfigError(f"--executor ray: no Ray cluster answers at RAY_ADDRESS={address} "
+                              f"({why}; check the address, or wait longer with --ray-timeout S)"
+                              ) from None
+    return ray
+
+
+def _init_ray(ray, address: str | None, num_cpus: int | None, timeout: float) -> None:
+    """ray.init: a local Ray started for the sweep, or the cluster at ``address`` given up after
+    ``timeout`` seconds with a ConfigError naming it (a port that accepts connections but is no
+    Ray cluster: Ray itself retries for minutes).  The connection is made in a thread that can
+    be left behind, so Ray warns that it sets no SIGTERM handler of its own."""
+    if not address:
+        ray.init(address="local", num_cpus=num_cpus, include_dashboard=False,
+                 log_to_driver=False, logging_level="WARNING")
+        return
+    failed = []
+
+    def init():
+        try:
+            ray.init(address=address, include_dashboard=False, log_to_driver=False,
+                     logging_level="WARNING")
+        except Exception as exc:                       # reported below, in the caller's thread
+            failed.append(exc)
+
+    t = threading.Thread(target=init, name="refgs-ray-init", daemon=True)
+    t.start()
+    t.join(timeout)
+    if t.is_alive() or failed:
+        why = (f"no answer within {timeout:g} s; --ray-timeout S to wait longer" if t.is_alive()
+               else one_line(f"{type(failed[0]).__name__}: {failed[0]}"))
+        raise ConfigError(f"--executor ray: cannot connect to RAY_ADDRESS={address} ({why})")
+
+
+def run_ray(grid, out: Path, todo: list, workers: int, threads: int,
+            timeout: float = DEFAULT_RAY_TIMEOUT_S):
+    """Yield each run's outcome as it finishes (None every POLL_S seconds in between)."""
+    ray = check_ray(timeout)
     address = os.environ.get("RAY_ADDRESS")
     started = not ray.is_initialized()
     if started:
-        ray.init(address=address or "local", num_cpus=None if address else workers * threads,
-                 include_dashboard=False, log_to_driver=False, logging_level="WARNING")
+        _init_ray(ray, address, workers * threads, timeout)
     task = ray.remote(ray_task).options(
         num_cpus=threads, max_retries=RAY_MAX_RETRIES, retry_exceptions=False,
         runtime_env={"env_vars": thread_environment(threads)})
@@ -218,14 +283,17 @@ def _line(outcome: dict, k: int, n: int) -> str:
 
 def sweep(grid, out: str | os.PathLike, executor: str = "local", workers: int | None = None,
           threads: int = DEFAULT_THREADS, retry_failed: bool = False,
-          progress: bool = True) -> dict:
-    """Run every run of ``grid`` that is not done into ``out``; the final manifest."""
+          progress: bool = True, ray_timeout: float = DEFAULT_RAY_TIMEOUT_S) -> dict:
+    """Run every run of ``grid`` that is not done into ``out``; the final manifest.
+    ``ray_timeout``: seconds the ray executor waits for the cluster at RAY_ADDRESS."""
     from tqdm import tqdm
 
     if executor not in EXECUTORS:
         raise ConfigError(f"--executor: expected one of {', '.join(EXECUTORS)}, got {executor!r}")
     if threads < 1 or (workers is not None and workers < 1):
         raise ConfigError("--workers / --threads-per-run: expected positive integers")
+    if executor == "ray":
+        check_ray(ray_timeout)              # a wrong RAY_ADDRESS: one line, before any output
     workers = workers or default_workers(threads)
     out = Path(out).absolute()
     out.mkdir(parents=True, exist_ok=True)
@@ -237,7 +305,8 @@ def sweep(grid, out: str | os.PathLike, executor: str = "local", workers: int | 
           f"{c['failed']} failed; executor {executor} on {host()}"
           + (f", {workers} workers x {threads} threads" if executor == "local" else
              f", {threads} CPUs a run"), flush=True)
-    run = run_local if executor == "local" else run_ray
+    run = run_local if executor == "local" else (
+        lambda *a: run_ray(*a, timeout=ray_timeout))
     bar = tqdm(total=len(todo), unit="run", desc="sweep", file=sys.stderr, dynamic_ncols=True,
                disable=None if progress and todo else True)      # None: only on a terminal
     finished = 0
@@ -274,4 +343,5 @@ def report(data: dict, out: Path, grid_path: Path) -> list[str]:
 
 
 __all__ = ["sweep", "plan", "report", "run_local", "run_ray", "ray_task", "default_workers",
-           "EXECUTORS", "DEFAULT_THREADS", "RAY_MAX_RETRIES"]
+           "check_ray", "ray_endpoint", "EXECUTORS", "DEFAULT_THREADS", "RAY_MAX_RETRIES",
+           "DEFAULT_RAY_TIMEOUT_S"]
