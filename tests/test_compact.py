@@ -243,3 +243,14 @@ def test_compactness_report_of_a_run(compact_run, tmp_path):
     assert row["curve"]["share"][-1] == pytest.approx(1.0)
     assert "| compact |" in (tmp_path / "c" / "compactness.md").read_text()
     assert (tmp_path / "c" / "compactness.png").stat().st_size > 0
+
+
+def test_compact_runs_have_a_label_of_their_own():
+    """A report tells compact runs from the paper's by their method label (refgs.analysis.tables)."""
+    from refgs.analysis.tables import method_label
+    from refgs.train.strategy import compact_label
+    assert compact_label(None) == "" and method_label({"method": "fm"}) == "fm"
+    settings = {"method": "fm", "compact": CompactConfig(
+        budget=4000, resolution_schedule=((0.0, 2), (0.5, 1))).to_dict()}
+    assert method_label(settings) == "fm+compact(budget=4000,resolution_schedule=0:2/0.5:1)"
+    assert method_label({"method": "3dgs", "compact": CompactConfig().to_dict()}) == "3dgs+compact"

@@ -44,8 +44,10 @@ LOWER_IS_BETTER = ("lpips_vgg", "lpips_vgg_official", "lpips_alex")
 
 
 def method_label(settings: dict) -> str:
-    """Method name, ``+fm`` for the plug-in, and the non-default method parameters."""
+    """Method name, ``+fm`` for the plug-in, the non-default method parameters, and the compact
+    strategy's settings (TRN-14) where the run has them."""
     from ..methods.dropgaussian import R_MAX
+    from ..train.strategy import compact_label
     from ..methods.flat_minima_method import FlatMinimaConfig
 
     params = dict(settings.get("method_params") or {})
@@ -59,7 +61,7 @@ def method_label(settings: dict) -> str:
         # default became None record 0.0 here)
         params.pop("noise_fixed_sigma", None)
     diff = [f"{k}={params[k]}" for k in sorted(params) if k in defaults and params[k] != defaults[k]]
-    return label + (f"[{','.join(diff)}]" if diff else "")
+    return label + (f"[{','.join(diff)}]" if diff else "") + compact_label(settings.get("compact"))
 
 
 def read_run_json(path: Path) -> dict:

@@ -103,6 +103,24 @@ COMPACT_PRESET = {
 }
 
 
+def compact_label(compact: dict | None) -> str:
+    """The suffix of a method label for a run's ``compact`` settings (as in config.json): "" for
+    the paper's strategy, "+compact" plus the settings that differ from CompactConfig's defaults,
+    e.g. ``+compact(budget=40000,resolution_schedule=0:2/0.5:1)``."""
+    if compact is None:
+        return ""
+    default = CompactConfig().to_dict()
+    parts = []
+    for key in sorted(compact):
+        value = compact[key]
+        if value == default.get(key):
+            continue
+        if key == "resolution_schedule":
+            value = "/".join(f"{s:g}:{int(f)}" for s, f in value)
+        parts.append(f"{key}={value}")
+    return "+compact" + (f"({','.join(parts)})" if parts else "")
+
+
 def parse_resolution_schedule(text: str) -> tuple:
     """``"0:4,0.3:2,0.6:1"`` -> ((0.0, 4), (0.3, 2), (0.6, 1)) (the command line's form)."""
     try:
@@ -228,5 +246,5 @@ def make_strategy(compact: CompactConfig | None):
     return PaperStrategy() if compact is None else CompactStrategy(compact)
 
 
-__all__ = ["CompactConfig", "COMPACT_PRESET", "PaperStrategy", "CompactStrategy", "make_strategy", "downsample_view",
+__all__ = ["CompactConfig", "COMPACT_PRESET", "compact_label", "PaperStrategy", "CompactStrategy", "make_strategy", "downsample_view",
            "parse_resolution_schedule"]
