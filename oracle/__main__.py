@@ -68,7 +68,8 @@ def _parser() -> argparse.ArgumentParser:
     d = sub.add_parser("diagnose", help="which named deviations (docs/spec/deviations.md) explain "
                                         "a backend's failures (the backend runs in a worker)")
     d.add_argument("--backend", required=True)
-    d.add_argument("--report", default=None, help="folder for diagnosis.json and diagnosis.txt")
+    d.add_argument("--report", default=None, help="folder for diagnosis.json, diagnosis.txt and "
+                                                  "diagnosis.html with its pictures")
     d.add_argument("--max-examples", type=int, default=6, help="scenes per check (default 6)")
     d.add_argument("--seed", type=int, default=0, help="hypothesis seed (default 0)")
     d.add_argument("--no-checks", action="store_true", help="judge on the deviations' witness scenes only")

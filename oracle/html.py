@@ -166,35 +166,6 @@ def _failure_html(r, run, folder: Path) -> str:
     return "\n".join(parts)
 
 
-def diagnosis_html(dg: dict) -> str:
-    """The diagnosis line at the top of the page (oracle/triage.py): which deviations explain
-    the failing checks, the unexplained ones, new failures."""
-    if not dg.get("available", True):
-        return f'<p class="diag">{escape(dg["summary"])}</p>'
-    parts = [f'<div class="diag"><p><b>Diagnosis</b> (docs/spec/deviations.md DEV-02): '
-             f'{escape(dg["summary"])}.</p>']
-    if dg.get("details"):
-        parts.append("<ul>" + "".join(f"<li><code>{escape(d['name'])}</code> ({escape(d['clause'])}): "
-                                      f"{escape(d['label'])} -- {escape(d['who'])}</li>"
-                                      for d in dg["details"]) + "</ul>")
-    if dg.get("explained"):
-        parts.append("<p>Explained: " + ", ".join(f'<a href="#check-{escape(c)}">{escape(c)}</a>'
-                                                  for c in dg["explained"]) + "</p>")
-    if dg.get("unexplained"):
-        parts.append("<p>Unexplained (a defect, or a convention the catalogue does not name):</p><ul>"
-                     + "".join(f'<li><a href="#check-{escape(u["check"])}">{escape(u["check"])}</a> '
-                               f'({escape(u["status"])}): <span class="msg">{escape(u["message"][:300])}</span></li>'
-                               for u in dg["unexplained"]) + "</ul>")
-    if dg.get("new_failures"):
-        parts.append("<p>New failures under the set:</p><ul>" + "".join(
-            f"<li>{escape(u['check'])}: {escape(u['message'][:300])}</li>" for u in dg["new_failures"]) + "</ul>")
-    if dg.get("not_diagnosed"):
-        parts.append("<p>Not diagnosed: " + ", ".join(f"{escape(u['check'])} ({escape(u['status'])})"
-                                                      for u in dg["not_diagnosed"]) + "</p>")
-    parts.append(f'<p class="muted">Full result: diagnosis.json ({dg.get("duration_s", 0):.1f} s).</p></div>')
-    return "".join(parts)
-
-
 def render_page(run, folder) -> str:
     """The page's HTML (drawing the pictures into ``folder``/pictures)."""
     folder = Path(folder)
@@ -219,6 +190,7 @@ def render_page(run, folder) -> str:
             + f" of {len(run.results)} checks; {run.settings.max_examples} examples per check, seed "
               f"{run.settings.seed}, {run.duration:.1f} s.</p>"]
     if run.diagnosis is not None:
+        from .diagnosis_page import diagnosis_html
         body.append(diagnosis_html(run.diagnosis))
     if failing:
         body.append("<h2>Checks that did not pass</h2>")

@@ -29,7 +29,7 @@ import numpy as np
 from refgs.deviations import incompatible
 
 from .compare import RATIO_LIMIT
-from .explain import judge, outcome, reference_fingerprint
+from .explain import FIXED_SCENES, judge, outcome, reference_fingerprint
 
 #: a move must lower the summed distance by this much (log10 units: one output's error
 #: halved, net of every output it moves the other way)
@@ -104,21 +104,26 @@ class DistanceSearch:
         return frozenset(s) & (self._rel[i] | self._extra.get(i, frozenset()))
 
     def refine(self, s: frozenset) -> bool:
-        """Judge every probe under the whole of ``s``; where that differs from its judgement
-        under the relevant members, the members of ``s`` that change the probe's reference
-        beside them become relevant there too (a deviation that shows only beside another: a
-        pixel offset on a Gaussian that only the missing 1/255 skip lets through).  True when
-        any probe gained one."""
+        """Compare, by reference fingerprint, each probe under the whole of ``s`` -- and each
+        small-scene probe under every single move from ``s`` -- with the relevant members only;
+        where they differ, the members that change the probe's reference beside those become
+        relevant there too (a deviation that shows only beside another: a pixel offset on a
+        Gaussian that only the missing 1/255 skip lets through, gsplat's tile rule under the
+        3-sigma radius).  True when any probe gained one."""
         grown = False
-        for i, p in enumerate(self.probes):
-            key = self.relevant(i, s)
-            if key == s or self._judge(i, frozenset(s)) == self._judge(i, key):
-                continue
-            here = reference_fingerprint(p, key)
-            more = frozenset(m for m in s - key if reference_fingerprint(p, key | {m}) != here)
-            more = more or (s - key)
-            self._extra[i] = self._extra.get(i, frozenset()) | more
-            grown = True
+        sets = [(s, range(len(self.probes)))]
+        small = [i for i, p in enumerate(self.probes) if p.source in FIXED_SCENES]
+        sets += [(t, small) for _, t in self.moves(s)]
+        for t, idx in sets:
+            for i in idx:
+                key = self.relevant(i, t)
+                p = self.probes[i]
+                if key == t or reference_fingerprint(p, t) == reference_fingerprint(p, key):
+                    continue
+                here = reference_fingerprint(p, key)
+                more = frozenset(m for m in t - key if reference_fingerprint(p, key | {m}) != here)
+                self._extra[i] = self._extra.get(i, frozenset()) | (more or (t - key))
+                grown = True
         return grown
 
     def _judge(self, i: int, key: frozenset) -> tuple[str, float]:

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import time
 import traceback
+from pathlib import Path
 
 from refgs.deviations import DEVIATIONS, label
 
@@ -35,6 +36,7 @@ from . import known as kd
 from .diagnose import DEFAULT_EXAMPLES, diagnose
 from .evaluate import Context
 from .explain import Signature
+from .html import PICTURES
 from .isolation import WorkerLost
 from .runner import record_failure, run_isolated
 
@@ -44,13 +46,15 @@ DIAGNOSED_STATUSES = ("fail", "error", "known")
 NOT_DIAGNOSED_STATUSES = ("crash", "timeout")
 
 
-def run_summary(deviations, explained: int, failing: int, new_failures: int) -> str:
-    """"behaves like the reference with {...}: explains X of Y failing checks, Z new failures"."""
+def run_summary(deviations, explained: int, failing: int, new_failures: int, residual=None) -> str:
+    """"behaves like the reference with {...}: explains X of Y failing checks, Z new failures"
+    and, when the diagnosis' ``residual`` names a stage, where the outputs first part."""
     if not failing:
         return "nothing to explain: no check failed"
     head = (f"behaves like the reference with {label(deviations)}" if deviations else
             "no set of catalogued deviations explains its failures")
-    return f"{head}: explains {explained} of {failing} failing checks, {new_failures} new failures"
+    tail = f"; {residual['summary']}" if residual and residual.get("first") else ""
+    return f"{head}: explains {explained} of {failing} failing checks, {new_failures} new failures{tail}"
 
 
 def unavailable(reason: str) -> dict:
@@ -90,8 +94,9 @@ def _diagnose_run(result, backend, progress, examples: int) -> dict:
         for case in (r.unshrunk, (r.evidence or {}).get("case")):
             if case is not None:
                 extra.append((r.check.name, case))
+    pictures = Path(settings.report_dir) / PICTURES if settings.report_dir else None
     d = diagnose(backend, examples=examples, seed=settings.seed, focus={r.check.name for r in failing},
-                 extra=extra, timeout=settings.timeout, progress=progress)
+                 extra=extra, timeout=settings.timeout, progress=progress, pictures=pictures)
     found = frozenset(d["deviations"])
     ver = d.get("verification") or {}
     fresh_ok = set(ver.get("explained", [])) | (set(r.check.name for r in failing) - set(d["failing_checks"]))
@@ -119,7 +124,7 @@ def _diagnose_run(result, backend, progress, examples: int) -> dict:
     block.update(deviations=d["deviations"], details=d["details"],
                  new_failures=ver.get("new_failures", []), diagnosis=d,
                  summary=run_summary(found, len(block["explained"]), len(failing),
-                                     len(ver.get("new_failures", []))),
+                                     len(ver.get("new_failures", [])), d["residual"]),
                  duration_s=round(time.perf_counter() - t0, 2))
     return block
 

@@ -47,6 +47,18 @@ def image_observable() -> list[str]:
     return out
 
 
+#: ten catalogue deviations at once (``python -m oracle diagnose --backend
+#: oracle.meta.many:ten_deviations``: the timing of docs/spec/deviations.md)
+ten_deviations = deviant("quat_xyzw", "rotation_transposed", "no_frustum_clamp", "no_dilation",
+                         "radius_3sigma", "colour_clamp_01", "pixel_centre_0", "alpha_cap_0.999",
+                         "alpha_skip_off", "stop_off")
+#: an image-only renderer as an outside author writes one: seven catalogue deviations and three
+#: defects the catalogue does not name (in the covariance, the projected ellipse, the sort key)
+outside_like = OffCatalogue({"quat_xyzw", "no_frustum_clamp", "no_dilation", "sh_dir_reversed",
+                             "pixel_centre_0", "alpha_skip_off", "stop_off"},
+                            {"cov_rotation_sign", "ellipse_mirrored", "sort_by_distance"})
+
+
 def compatible_set(rng: np.random.Generator, size: int, names) -> frozenset:
     """``size`` compatible names drawn from ``names`` in a random order (greedy; redrawn until
     the size is reached)."""
@@ -156,4 +168,5 @@ if __name__ == "__main__":
     sys.exit(main())
 
 
-__all__ = ["catalogue_sets", "compatible_set", "off_catalogue_sets", "run_set", "score", "table"]
+__all__ = ["catalogue_sets", "compatible_set", "image_observable", "off_catalogue_sets", "outside_like",
+           "run_set", "score", "table", "ten_deviations"]
