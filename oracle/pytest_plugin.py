@@ -48,17 +48,20 @@ def pytest_addoption(parser) -> None:
                 help="judge the backend in this profile instead of the one it declares (for a "
                      "renderer whose render follows config.profile)")
     g.addoption("--oracle-max-examples", type=int, metavar="N",
-                help="hypothesis examples per check (default: as python -m oracle check, 20)")
-    g.addoption("--oracle-seed", type=int, metavar="S", help="hypothesis seed (default 0)")
+                help="hypothesis examples per check (default: as python -m oracle check)")
+    g.addoption("--oracle-seed", type=int, metavar="S",
+                help="hypothesis seed (default: as python -m oracle check)")
     g.addoption("--oracle-clause", action="append", default=[], metavar="ID",
                 help="only checks citing these clause ids or prefixes (repeatable, or a comma list)")
     g.addoption("--oracle-report", metavar="DIR",
                 help=f"report folder (default: {REPORT_BESIDE_XML}/ beside --junitxml, else "
                      f"./{REPORT_BESIDE_XML})")
     g.addoption("--oracle-timeout", type=float, metavar="S",
-                help="seconds of backend time one check may use (default 300; 0: no limit)")
+                help="seconds of backend time one check may use (default: as python -m oracle "
+                     "check; 0: no limit)")
     g.addoption("--oracle-memory-limit", type=int, metavar="MIB",
-                help="data memory of the backend's worker in MiB (default 8192; 0: no limit)")
+                help="data memory of the backend's worker in MiB (default: as python -m oracle "
+                     "check; 0: no limit)")
     g.addoption("--oracle-known-differences", metavar="FILE",
                 help="TOML file of [[difference]] tables: failures reported as known")
     g.addoption("--oracle-no-shrink", action="store_true",
@@ -165,7 +168,8 @@ class OracleRun:
         self.folder = report_folder(config)
         self.settings = Settings(
             max_examples=defaults.max_examples if n is None else n,
-            seed=opt("oracle_seed") or defaults.seed, shrink=not opt("oracle_no_shrink"),
+            seed=defaults.seed if opt("oracle_seed") is None else opt("oracle_seed"),
+            shrink=not opt("oracle_no_shrink"),
             report_dir=str(self.folder), clauses=clauses, timeout=timeout or None,
             memory_limit_mib=memory, known_differences=known)
         self.backend = None
