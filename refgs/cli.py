@@ -13,6 +13,7 @@
     refgs table RUN_DIR ... [--metrics psnr ssim lpips_vgg] [--baseline LABEL] [--out DIR]
     refgs figures RUN_DIR ... [--flatness DIR ...] [--out figures]
     refgs record RUN_DIR ... [--out results/records]
+    refgs compactness RUN_DIR ... [--out DIR]   (contributions and fragments, docs/compact.md)
     refgs report GRID.toml ... [--records results/records] [--update docs/results.md] [--check-equivalence]
     refgs sweep GRID.toml --out DIR [--executor local|ray] [--workers N] [--list] ...
     refgs run-one GRID.toml --out DIR --index I
@@ -57,7 +58,7 @@ def _add_train(sub) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     """The parser of every ``refgs`` subcommand; ``args.handler(args, argv)`` runs one."""
-    from .analysis import bench, demo, figures, flatness, records, report, tables
+    from .analysis import bench, compactness, demo, figures, flatness, records, report, tables
     from .sweep import command as sweep
 
     p = _Parser(prog="refgs", description="refgs: the numpy 3DGS specification - training CLI")
@@ -89,7 +90,8 @@ def build_parser() -> argparse.ArgumentParser:
     m.set_defaults(handler=lambda a, _: demo.run_demo(a.out, a.iters, a.backend, a.seed,
                                                       progress=not a.quiet))
 
-    for name, module in (("bench", bench), ("flatness", flatness), ("table", tables),
+    for name, module in (("bench", bench), ("compactness", compactness), ("flatness", flatness),
+                         ("table", tables),
                          ("figures", figures), ("record", records), ("report", report),
                          ("sweep", sweep)):
         module.add_parser(sub)

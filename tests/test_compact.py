@@ -11,6 +11,8 @@
 """
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -254,3 +256,26 @@ def test_compact_runs_have_a_label_of_their_own():
         budget=4000, resolution_schedule=((0.0, 2), (0.5, 1))).to_dict()}
     assert method_label(settings) == "fm+compact(budget=4000,resolution_schedule=0:2/0.5:1)"
     assert method_label({"method": "3dgs", "compact": CompactConfig().to_dict()}) == "3dgs+compact"
+
+
+def test_compact_flags_on_the_command_line(scene, tmp_path, capsys):
+    """`refgs train --compact` takes the preset, given flags override it; bad values are one
+    line naming the flag (TRN-11, TRN-14)."""
+    import json
+
+    from refgs.train.strategy import COMPACT_PRESET
+    from test_cli import assert_one_line_error, run_cli, tiny_args
+
+    out = tmp_path / "c"
+    rc, _, err = run_cli(tiny_args(scene, out, 10, "--compact", "--budget", "50"), capsys)
+    assert rc == 0, err
+    settings = json.loads((out / runs.CONFIG_FILE).read_text())["settings"]
+    preset = CompactConfig(**COMPACT_PRESET["compact"])
+    assert settings["compact"] == dataclasses.replace(preset, budget=50).to_dict()
+    assert settings["sh_degree"] == COMPACT_PRESET["sh_degree"]
+    assert settings["densify"]["until"] == 14            # tiny_args' --densify-until wins
+    for flag, value in (("--prune-fraction", "1.5"), ("--budget", "0"),
+                        ("--resolution-schedule", "0:x")):
+        rc, _, err = run_cli(tiny_args(scene, tmp_path / flag.strip("-"), 10, flag, value), capsys)
+        assert_one_line_error(rc, err, flag)
+        assert not (tmp_path / flag.strip("-")).exists()

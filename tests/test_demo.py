@@ -22,7 +22,8 @@ def test_configs_differ_only_in_the_method():
     assert {k for k in a if a[k] != b[k]} == {"method", "method_params"}
     assert b["method_params"]["reinit_interval"] == 100 and b["method_params"]["reinit_window"] == 10
     assert a["densify"]["start"] == 50 and a["densify"]["interval"] == 10
-    assert a["views"] == demo.DEMO_VIEWS and a["eval_every"] == 0 and a["checkpoint_every"] == 0
+    # test points every T/20, before each multiple (refgs.runs.is_test_point, TRN-07)
+    assert a["views"] == demo.DEMO_VIEWS and a["eval_every"] == 50 and a["checkpoint_every"] == 0
 
 
 def test_unknown_method_is_one_line():

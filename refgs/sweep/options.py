@@ -15,6 +15,8 @@ from ..methods import METHOD_NAMES, method_params
 from ..methods.flat_minima import CLAMP_MODES, PERTURB_TARGETS
 from ..train.densify import DENSIFY_PRESETS, SCREEN_SIZE_RULES
 from ..train.loss import LOSS_FORMS
+from ..train.schedule import SH_MAX_DEGREE
+from ..train.strategy import COMPACT_PRESET, CompactConfig, parse_resolution_schedule
 from ..train.trainer import BACKGROUNDS, DTYPES, TrainConfig
 
 #: Flags a new run needs (``--resume`` takes them from the run's config.json instead).
@@ -25,6 +27,9 @@ DENSIFY_FLAGS = ("start", "interval", "until", "grad_threshold", "opacity_reset_
 #: Method flags (argparse dest = the recorded parameter name; refgs.methods.method_params).
 METHOD_FLAGS = ("gamma", "p", "p_ramp", "schedule", "clamp", "noise", "noise_fixed_sigma",
                 "perturb", "mixed_loss", "reinit", "reinit_interval", "reinit_window", "r_max")
+#: Compact-strategy flags (argparse dest = the CompactConfig field; TRN-14).
+COMPACT_FLAGS = ("budget", "prune_fraction", "prune_every", "final_prune_fraction",
+                 "resolution_schedule")
 #: Options that say where and how to run, not what: they are not settings of a run.
 RUN_CONTROL_FLAGS = ("resume", "out", "quiet")
 
@@ -58,7 +63,8 @@ def add_train_options(t: argparse.ArgumentParser) -> None:
     t.add_argument("--lambda-dssim", type=float, default=0.2)
     t.add_argument("--no-clamp", action="store_true", help="do not clamp the render before the loss")
     t.add_argument("--profile", default="inria", choices=("inria", "gsplat"))
-    t.add_argument("--sh-degree", type=int, default=3)
+    t.add_argument("--sh-degree", type=int, help=f"largest SH degree (default {SH_MAX_DEGREE}; "
+                   f"--compact: {COMPACT_PRESET['sh_degree']})")
     t.add_argument("--holdout", type=int, default=8, help="every k-th view is a test view")
     t.add_argument("--triangulation", default="tuned", help="preset for --init-points train-views")
     t.add_argument("--no-lpips", action="store_true", help="skip LPIPS in the final evaluation")
@@ -91,6 +97,35 @@ def add_train_options(t: argparse.ArgumentParser) -> None:
     d.add_argument("--densify-grad-threshold", type=float, dest="grad_threshold")
     d.add_argument("--opacity-reset-interval", type=int, dest="opacity_reset_interval")
     d.add_argument("--screen-size-rule", choices=SCREEN_SIZE_RULES, dest="screen_size_rule")
+    c = t.add_argument_group("compact strategy (docs/spec/training.md TRN-14, docs/compact.md)")
+    c.add_argument("--compact", action="store_true",
+                   help="the recommended compact preset (its values: refgs.train.strategy."
+                        "COMPACT_PRESET); the flags below override it")
+    c.add_argument("--budget", type=int, help="at most this many Gaussians")
+    c.add_argument("--prune-fraction", type=float, help="soft pruning: fraction of least "
+                   "contribution removed every --prune-every iterations while densifying")
+    c.add_argument("--prune-every", type=int, metavar="K")
+    c.add_argument("--final-prune-fraction", type=float, help="hard pruning once densification ends")
+    c.add_argument("--resolution-schedule", metavar="S:F,...",
+                   help="fit images downsampled by F from iteration S*T on (e.g. 0:4,0.3:2,0.6:1)")
+
+
+def compact_from_args(args) -> tuple:
+    """(CompactConfig or None, densify overrides, SH degree) of the parsed compact flags: None
+    and the paper's values when neither --compact nor a compact flag is given (TRN-14)."""
+    given = {k: getattr(args, k) for k in COMPACT_FLAGS if getattr(args, k, None) is not None}
+    if "resolution_schedule" in given:
+        given["resolution_schedule"] = parse_resolution_schedule(given["resolution_schedule"])
+    sh = args.sh_degree
+    if not args.compact and not given:
+        return None, {}, SH_MAX_DEGREE if sh is None else sh
+    base = COMPACT_PRESET if args.compact else {}
+    compact = CompactConfig(**{**base.get("compact", {}), **given})
+    until = None
+    if "densify_until" in base and args.iters is not None:
+        until = int(base["densify_until"] * args.iters)
+    sh = sh if sh is not None else base.get("sh_degree", SH_MAX_DEGREE)
+    return compact, {"until": until}, sh
 
 
 def config_from_args(args) -> TrainConfig:
@@ -99,18 +134,21 @@ def config_from_args(args) -> TrainConfig:
         if getattr(args, flag) is None:
             raise ConfigError(f"--{flag}: required for a new run (or give --resume RUN_DIR)")
     given = {k: getattr(args, k) for k in METHOD_FLAGS if getattr(args, k, None) is not None}
+    compact, compact_densify, sh_degree = compact_from_args(args)
+    densify = {k: getattr(args, k) for k in DENSIFY_FLAGS}
+    densify.update({k: v for k, v in compact_densify.items() if densify.get(k) is None})
     return TrainConfig.with_preset(
-        args.densify_preset, {k: getattr(args, k) for k in DENSIFY_FLAGS},
+        args.densify_preset, densify,
         scene=args.scene, views=args.views, iters=args.iters, seed=args.seed, images=args.images,
         resolution=args.resolution, method=args.method,
         method_params=method_params(args.method, given, fm=bool(args.fm)),
         backend=args.backend or default_backend(),
         init_points=args.init_points, checkpoint_every=args.checkpoint_every,
         eval_every=args.eval_every, strict=args.strict, dtype=args.dtype, profile=args.profile,
-        sh_degree=args.sh_degree, background=args.background, loss_form=args.loss_form,
+        sh_degree=sh_degree, compact=compact, background=args.background, loss_form=args.loss_form,
         lambda_dssim=args.lambda_dssim, clamp_render=not args.no_clamp, holdout=args.holdout,
         triangulation=args.triangulation, lpips=not args.no_lpips)
 
 
-__all__ = ["add_train_options", "config_from_args", "NEW_RUN_FLAGS", "DENSIFY_FLAGS",
-           "METHOD_FLAGS", "RUN_CONTROL_FLAGS"]
+__all__ = ["add_train_options", "config_from_args", "compact_from_args", "NEW_RUN_FLAGS",
+           "DENSIFY_FLAGS", "METHOD_FLAGS", "COMPACT_FLAGS", "RUN_CONTROL_FLAGS"]
