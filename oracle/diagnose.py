@@ -31,13 +31,12 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 from hypothesis import HealthCheck, Phase, Verbosity, given
 from hypothesis import seed as hseed
 from hypothesis import settings as hsettings
 
 import refgs
-from refgs.deviations import DEVIATIONS, apply_deviations, incompatible, label
+from refgs.deviations import DEVIATIONS, apply_deviations, label
 from refgs.io.atomic import atomic_write_json, atomic_write_text
 
 from .checks import CHECKS, Check

@@ -105,7 +105,8 @@ class DistanceSearch:
 
     def refine(self, s: frozenset) -> bool:
         """Compare, by reference fingerprint, each probe under the whole of ``s`` -- and each
-        small-scene probe under every single move from ``s`` -- with the relevant members only;
+        small-scene probe under every single move from ``s`` whose new member shows on it alone
+        -- with the relevant members only;
         where they differ, the members that change the probe's reference beside those become
         relevant there too (a deviation that shows only beside another: a pixel offset on a
         Gaussian that only the missing 1/255 skip lets through, gsplat's tile rule under the
@@ -113,7 +114,7 @@ class DistanceSearch:
         grown = False
         sets = [(s, range(len(self.probes)))]
         small = [i for i, p in enumerate(self.probes) if p.source in FIXED_SCENES]
-        sets += [(t, small) for _, t in self.moves(s)]
+        sets += [(t, [i for i in small if self.relevant(i) & (t - s)]) for _, t in self.moves(s)]
         for t, idx in sets:
             for i in idx:
                 key = self.relevant(i, t)

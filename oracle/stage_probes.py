@@ -89,12 +89,15 @@ _PROBES = [
     StageProbe("centre", "PRJ", ("PRJ-01", "PRJ-04", "CNV-08", "RAS-03"),
                "one broad isotropic Gaussian at the centre: the mean's projection, an isotropic "
                "2D covariance, pixel sampling, one fragment", None, _CENTRE,
-               claim="the simplest scene already differs: the projection of an isotropic Gaussian's mean or covariance, pixel sampling or one fragment's alpha departs from PRJ-01/PRJ-04/CNV-08/RAS-03",
+               claim="the simplest scene already differs: the projection of an isotropic Gaussian's "
+                     "mean or covariance, pixel sampling or one fragment's alpha departs from "
+                     "PRJ-01/PRJ-04/CNV-08/RAS-03",
                exercises=("COV", "PRJ", "SH", "RAS")),
     StageProbe("rotated", "COV", ("COV-01", "CNV-04"),
                "an anisotropic Gaussian with a generic rotation (R S S^T R^T, quaternion order)",
                "centre", _ROTATED,
-               claim="the covariance of a rotated Gaussian differs from R S S^T R^T (or the quaternion is read in another order)",
+               claim="the covariance of a rotated Gaussian differs from R S S^T R^T (or the "
+                     "quaternion is read in another order)",
                exercises=("COV", "PRJ")),
     StageProbe("rotated_x", "COV", ("COV-01", "CNV-04"),
                "a Gaussian turned about the x axis only, off-axis in y only: the 2D covariance "
@@ -110,20 +113,24 @@ _PROBES = [
     StageProbe("tiny", "PRJ", ("PRJ-04", "PRF-03"),
                "a Gaussian much smaller than a pixel (the 0.3 px^2 dilation dominates)", "centre",
                dataclasses.replace(_CENTRE, at=((8.0, 8.0, 4.0),), log_scales=(-6.0,)),
-               claim="a sub-pixel Gaussian differs: the low-pass dilation (+0.3 px^2) or the determinant rule departs"),
+               claim="a sub-pixel Gaussian differs: the low-pass dilation (+0.3 px^2) or the "
+                     "determinant rule departs"),
     StageProbe("rotated_camera", "PRJ", ("PRJ-01", "CNV-02"),
                "the rotated Gaussian seen by a camera turned 35 degrees (W Sigma W^T)", "rotated",
-               _ROTATED, claim="a turned camera sees the rotated Gaussian differently: the view rotation W Sigma W^T departs",
+               _ROTATED, claim="a turned camera sees the rotated Gaussian differently: the view "
+                               "rotation W Sigma W^T departs",
                camera_turn=35.0),
     StageProbe("off_axis", "PRJ", ("PRJ-03",),
                "an isotropic Gaussian off-axis in x and y inside the frustum (the EWA Jacobian's "
                "off-diagonal terms)", "centre",
                dataclasses.replace(_CENTRE, at=((3.5, 12.5, 3.0),), log_scales=(-0.6,)),
-               claim="an off-axis Gaussian's projected ellipse differs: the EWA Jacobian J departs off the optical axis"),
+               claim="an off-axis Gaussian's projected ellipse differs: the EWA Jacobian J departs "
+                     "off the optical axis"),
     StageProbe("frustum_edge", "PRJ", ("PRJ-03", "PRF-02"),
                "a large Gaussian beyond 1.3 tan(fov/2) with its tail on the image (frustum clamp)",
                "off_axis", Witness(at=((27.2, 8.0, 4.0),), log_scales=(0.3,), logits=(3.0,)),
-               claim="a Gaussian beyond the frustum limit differs: the clamp of x/z, y/z to 1.3 tan(fov/2) departs"),
+               claim="a Gaussian beyond the frustum limit differs: the clamp of x/z, y/z to 1.3 "
+                     "tan(fov/2) departs"),
     StageProbe("near_plane", "PRJ", ("PRJ-02", "PRF-01"),
                "small Gaussians at depth 0.25 (kept) and 0.1 (culled by the 0.2 near plane)",
                "centre", Witness(at=((5.3, 8.0, 0.25), (11.3, 8.0, 0.1)), log_scales=(-6.0,),
@@ -138,7 +145,8 @@ _PROBES = [
                "degree-1 SH seen off-axis in x (view direction mean - camera, band signs)", "centre",
                dataclasses.replace(_CENTRE, at=((4.0, 8.0, 4.0),),
                                    sh1=((0.3, 0.1, -0.2), (0.2, -0.3, 0.1), (-0.1, 0.2, 0.3))),
-               claim="view-dependent colour differs: the SH view direction (mean - camera) or the band signs depart"),
+               claim="view-dependent colour differs: the SH view direction (mean - camera) or the "
+                     "band signs depart"),
     StageProbe("colour_range", "SH", ("CNV-10",),
                "colour channels above 1 and below 0 (the +0.5 offset, the clamp at 0 only)",
                "centre", dataclasses.replace(_CENTRE, rgb=((1.6, -0.4, 1.3),)),
@@ -146,22 +154,26 @@ _PROBES = [
     StageProbe("pixel_centre", "RAS", ("CNV-08",),
                "a small Gaussian on a pixel corner (pixels sampled at j + 0.5, i + 0.5)", "centre",
                Witness(at=((8.0, 8.0, 4.0),), log_scales=(-2.0,)),
-               claim="a small Gaussian off the pixel grid differs: pixels are not sampled at their centres (j + 0.5, i + 0.5)",
+               claim="a small Gaussian off the pixel grid differs: pixels are not sampled at their "
+                     "centres (j + 0.5, i + 0.5)",
                exercises=("RAS", "PRJ")),
     StageProbe("order_near_first", "RAS", ("RAS-02",),
                "two overlapping Gaussians, the nearer one first in the arrays", "centre",
                Witness(at=((7.0, 8.0, 3.0), (9.0, 8.0, 5.0)), **_TWO),
-               claim="two overlapping Gaussians are blended in another order: the front-to-back depth sort departs"),
+               claim="two overlapping Gaussians are blended in another order: the front-to-back depth"
+                     " sort departs"),
     StageProbe("order_far_first", "RAS", ("RAS-02",),
                "the same two Gaussians, the farther one first in the arrays", "centre",
                Witness(at=((9.0, 8.0, 5.0), (7.0, 8.0, 3.0)), **{**_TWO, "rgb": _TWO["rgb"][::-1]}),
-               claim="two overlapping Gaussians given far-first are blended in another order: the sort departs (not by depth, or not stable)"),
+               claim="two overlapping Gaussians given far-first are blended in another order: the "
+                     "sort departs (not by depth, or not stable)"),
     StageProbe("sort_key", "RAS", ("RAS-02", "PRJ-06"),
                "two overlapping Gaussians whose order by view-space depth and by distance from "
                "the camera differ (the sort key is t_z)", "order_near_first",
                Witness(at=((8.0, 8.0, 4.0), (0.5, 8.0, 3.7)), log_scales=(0.3,),
                        logits=(_logit(0.8),), rgb=((0.9, 0.2, 0.1), (0.1, 0.3, 0.9))),
-               claim="Gaussians whose depth order and distance order differ are blended by distance: the sort key is not the view-space depth t_z",
+               claim="Gaussians whose depth order and distance order differ are blended by distance: "
+                     "the sort key is not the view-space depth t_z",
                exercises=("RAS",)),
     StageProbe("low_opacity", "RAS", ("RAS-04",),
                "a broad Gaussian of opacity 0.003 (alpha below 1/255 everywhere: skipped)", "centre",
@@ -176,7 +188,8 @@ _PROBES = [
                "six broad opaque Gaussians stacked on the centre (T falls below 1e-4 on many "
                "pixels, at different fragments)", "order_near_first",
                Witness(at=tuple((8.0, 8.0, z) for z in (2.0, 2.8, 3.6, 4.4, 5.2, 6.0)),
-                       log_scales=(-1.0,), logits=tuple(_logit(o) for o in (0.95, 0.97, 0.98, 0.98, 0.97, 0.9)),
+                       log_scales=(-1.0,),
+                       logits=tuple(_logit(o) for o in (0.95, 0.97, 0.98, 0.98, 0.97, 0.9)),
                        rgb=((0.9, 0.1, 0.1), (0.1, 0.9, 0.1), (0.1, 0.1, 0.9), (0.9, 0.9, 0.1),
                             (0.1, 0.9, 0.9), (0.5, 0.5, 0.5))),
                claim="a deep stack differs: the transmittance stop (T below 1e-4, the saturating "
