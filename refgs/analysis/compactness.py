@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io.atomic import atomic_path, atomic_write_json, atomic_write_text
+from ..io.atomic import atomic_save_figure, atomic_write_json, atomic_write_text
 from ..train.contribution import CARRY_SHARES, contributions
 
 COMPACTNESS_JSON = "compactness.json"
@@ -106,9 +106,7 @@ def plot(rows: list[dict], path: Path) -> Path:
     b.set_ylabel("fragments per iteration (M)")
     b.grid(alpha=0.3)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+    atomic_save_figure(fig, path)
     return path
 
 

@@ -31,7 +31,7 @@ import numpy as np
 from scipy import stats
 
 from ..errors import ConfigError
-from ..io.atomic import atomic_path, atomic_write_json, atomic_write_text
+from ..io.atomic import atomic_save_figure, atomic_write_json, atomic_write_text
 from ..metrics.psnr import psnr
 from ..methods.flat_minima import DEFAULT_CLAMP, P_PERTURB, sap_offsets
 from .stats import CONFIDENCE
@@ -118,9 +118,7 @@ def plot_curves(curves: dict, path: Path) -> None:
     axes[0].legend(fontsize=8)
     fig.suptitle("robustness to position perturbations (SAP; mean +- std over seeds)")
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+    atomic_save_figure(fig, path)
 
 
 #: The training-seed suffix of a run name (``fern_v3_fm_s0``): groups the curves of flatness.json
@@ -202,9 +200,7 @@ def plot_over_seeds(curves: dict, path: Path) -> dict:
         row[0].legend(fontsize=8)
     fig.suptitle("robustness to position perturbations over training seeds (mean, 95 % t-band)")
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+    atomic_save_figure(fig, path)
     return groups
 
 

@@ -139,5 +139,20 @@ def atomic_save_png(path: str | os.PathLike, image) -> Path:
     return Path(path)
 
 
+#: Resolution of the analysis pictures (dots per inch).
+FIGURE_DPI = 110
+
+
+def atomic_save_figure(fig, path: str | os.PathLike, dpi: int = FIGURE_DPI) -> Path:
+    """Save a matplotlib figure as PNG atomically, then close it."""
+    import matplotlib.pyplot as plt
+
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=dpi, format="png")
+    plt.close(fig)
+    return Path(path)
+
+
 __all__ = ["atomic_path", "atomic_dir", "default_mode", "atomic_write_bytes", "atomic_write_text",
-           "atomic_write_json", "atomic_save_npz", "atomic_save_png", "to_uint8"]
+           "atomic_write_json", "atomic_save_npz", "atomic_save_png", "atomic_save_figure",
+           "to_uint8", "FIGURE_DPI"]
