@@ -92,8 +92,10 @@ class CompactConfig:
 
 
 #: ``refgs train --compact`` (grid key ``compact = true``): the compact settings, the fraction of
-#: T at which densification ends (then the hard pruning), and the SH degree. Chosen from the
-#: frontier of docs/compact.md (fern 3-view, bonsai 12-view; the records named there).
+#: T at which densification ends (then the hard pruning), and the SH degree. A first choice, set
+#: before any compact run (DashGaussian's coarse-to-fine resolution, Speedy-Splat's soft and hard
+#: pruning); docs/compact.md has its first run, and experiments/compact.toml is the grid that
+#: will choose it.
 COMPACT_PRESET = {
     "compact": {"budget": None, "prune_fraction": 0.1, "prune_every": 500,
                 "final_prune_fraction": 0.3,
