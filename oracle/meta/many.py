@@ -6,22 +6,26 @@ backend, oracle/meta/deviant.py), and sets with one or two off-catalogue defects
 (oracle/diagnose.py with no check scenes) and scored: recall and precision of the named set
 against the planted one, and, for each off-catalogue defect, whether the report names its stage.
 
-    python -m oracle.meta.many --sizes 4 6 8 10 12 --sets 20 --seed 0 [--out table.md]
+    python -m oracle.meta.many --sizes 4 6 8 10 12 --sets 20 --seed 0 [--out table.md] [--rows rows.json]
+    python -m oracle.meta.many --table-from rows-a.json rows-b.json     # the table of several runs
 
-prints one row per set as it goes and the table at the end (docs/spec/deviations.md holds it).
+prints one line per set as it goes and the table at the end (docs/spec/deviations.md holds it);
+runs may be split by size (``--sizes 8``; ``--sizes`` alone: the off-catalogue sets only).
 """
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
 import refgs
 from refgs.deviations import DEVIATIONS, incompatible
-from refgs.io.atomic import atomic_write_text
+from refgs.io.atomic import atomic_write_json, atomic_write_text
 
 from ..diagnose import diagnose
 from .deviant import deviant, observable_names
@@ -137,14 +141,26 @@ def table(rows: list[dict]) -> str:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="python -m oracle.meta.many", description=__doc__.split("\n")[0])
-    ap.add_argument("--sizes", type=int, nargs="+", default=[4, 6, 8, 10, 12])
+    ap.add_argument("--sizes", type=int, nargs="*", default=[4, 6, 8, 10, 12],
+                    help="sizes of the catalogue sets (none: off-catalogue sets only)")
     ap.add_argument("--sets", type=int, default=20, help="catalogue sets per size")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-off-catalogue", action="store_true")
     ap.add_argument("--out", help="write the table (Markdown) here")
+    ap.add_argument("--rows", help="write every set's row here (JSON, rewritten after each set)")
+    ap.add_argument("--table-from", nargs="+", metavar="ROWS",
+                    help="print the table of rows written by earlier runs (--rows files) and stop")
     a = ap.parse_args(argv)
-    if a.sets < 1 or any(s < 1 for s in a.sizes):
-        print("oracle.meta.many: error: --sets and --sizes: expected positive integers", file=sys.stderr)
+    if a.table_from:
+        rows = [r for f in a.table_from for r in json.loads(Path(f).read_text())]
+        text = table(rows) + f"\n{len(rows)} sets (seed {a.seed}).\n"
+        print(text)
+        if a.out:
+            atomic_write_text(a.out, text)
+        return 0
+    if a.sets < 1 or any(s < 1 for s in a.sizes) or (not a.sizes and a.no_off_catalogue):
+        print("oracle.meta.many: error: --sets and --sizes: expected positive integers (and some "
+              "sets to run)", file=sys.stderr)
         return 2
     jobs = [(s, frozenset()) for size in a.sizes for s in catalogue_sets(size, a.sets, a.seed)]
     if not a.no_off_catalogue:
@@ -154,6 +170,8 @@ def main(argv=None) -> int:
     for k, (devs, defects) in enumerate(jobs):
         r = run_set(devs, defects)
         rows.append(r)
+        if a.rows:
+            atomic_write_json(a.rows, rows)
         miss, extra = sorted(set(r["planted"]) - set(r["found"])), sorted(set(r["found"]) - set(r["planted"]))
         print(f"[{k + 1}/{len(jobs)}] {len(devs)} + {r['defects'] or 'none'}: {r['seconds']} s; "
               f"missed {miss}, extra {extra}; {r['residual']}", flush=True)
