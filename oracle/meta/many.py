@@ -147,7 +147,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-off-catalogue", action="store_true")
     ap.add_argument("--out", help="write the table (Markdown) here")
-    ap.add_argument("--rows", help="write every set's row here (JSON, rewritten after each set)")
+    ap.add_argument("--rows", help="write every set's row here (JSON, rewritten after each set); "
+                                   "sets already in it are not run again")
     ap.add_argument("--table-from", nargs="+", metavar="ROWS",
                     help="print the table of rows written by earlier runs (--rows files) and stop")
     a = ap.parse_args(argv)
@@ -165,9 +166,12 @@ def main(argv=None) -> int:
     jobs = [(s, frozenset()) for size in a.sizes for s in catalogue_sets(size, a.sets, a.seed)]
     if not a.no_off_catalogue:
         jobs += off_catalogue_sets(a.seed)
-    rows = []
+    rows = json.loads(Path(a.rows).read_text()) if a.rows and Path(a.rows).is_file() else []
+    done = {(tuple(r["planted"]), tuple(r["defects"])) for r in rows}
     t0 = time.perf_counter()
     for k, (devs, defects) in enumerate(jobs):
+        if (tuple(sorted(devs)), tuple(sorted(defects))) in done:
+            continue
         r = run_set(devs, defects)
         rows.append(r)
         if a.rows:
