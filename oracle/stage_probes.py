@@ -43,7 +43,8 @@ class StageProbe:
     the root), ``clauses`` and ``adds`` what it exercises beyond its base, ``stage`` where that is
     computed, ``claim`` what a difference here says (the report's sentence), ``camera_turn`` a
     camera rotation in degrees (0: identity pose), ``exercises`` the stages a defect of which
-    could show here first (default: ``stage`` alone).  Every Gaussian but those of the rotated
+    could show here first (default: ``stage`` alone), ``sh_rest`` the degree-2 and degree-3
+    coefficients (12 x 3) appended to the witness' degree-1 SH (None: none).  Every Gaussian but those of the rotated
     and off-axis probes lies on the image's centre row, so a 2D covariance without off-diagonal
     term tells a projection defect from the others."""
 
@@ -56,6 +57,7 @@ class StageProbe:
     claim: str = ""
     camera_turn: float = 0.0
     exercises: tuple = ()
+    sh_rest: tuple | None = None
 
     @property
     def could_be(self) -> tuple:
@@ -65,6 +67,9 @@ class StageProbe:
     def case(self, profile: str = "inria") -> Case:
         """The probe's scene as a Case (float64) for ``profile``."""
         g, cam, cfg = self.witness.build(profile)
+        if self.sh_rest is not None:
+            rest = np.broadcast_to(np.asarray(self.sh_rest, np.float64), (len(g), 12, 3))
+            g = g.replace(sh=np.concatenate([g.sh, rest], axis=1))
         if self.camera_turn:
             a = np.deg2rad(self.camera_turn)
             R = np.array([[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]])
@@ -79,6 +84,10 @@ def _logit(o: float) -> float:
     return float(np.log(o / (1.0 - o)))
 
 
+#: degree-2 and -3 SH coefficients of the view-direction probe: band 3 as strong as band 1, so
+#: that a sign slip in one band is not the reversed view direction (which flips every odd band)
+_SH_REST = tuple((0.0, 0.0, 0.0) for _ in range(5)) + tuple(
+    (0.5 * s, -0.5 * s, 0.25 * s) for s in (1, -1, 1, -1, 1, -1, 1))
 #: a broad isotropic Gaussian at the image centre (sigma about 2.4 px)
 _CENTRE = Witness(at=((8.0, 8.0, 4.0),), log_scales=(-0.5,), logits=(_logit(0.7),), rgb=((0.7, 0.5, 0.3),))
 #: an elongated Gaussian turned about a generic axis, at the centre
@@ -142,9 +151,10 @@ _PROBES = [
                                  logits=(_logit(0.7), 3.0), rgb=((0.7, 0.5, 0.3), (0.1, 0.9, 0.1))),
                claim="a Gaussian behind the camera is drawn: it must be culled"),
     StageProbe("sh_view", "SH", ("SH-03", "CNV-09"),
-               "degree-1 SH seen off-axis in x (view direction mean - camera, band signs)", "centre",
+               "SH of degree 3 seen off-axis in x (view direction mean - camera, band signs)", "centre",
                dataclasses.replace(_CENTRE, at=((4.0, 8.0, 4.0),),
                                    sh1=((0.3, 0.1, -0.2), (0.2, -0.3, 0.1), (-0.1, 0.2, 0.3))),
+               sh_rest=_SH_REST,
                claim="view-dependent colour differs: the SH view direction (mean - camera) or the "
                      "band signs depart"),
     StageProbe("colour_range", "SH", ("CNV-10",),
