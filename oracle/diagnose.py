@@ -44,7 +44,7 @@ from .compare import problem
 from .evaluate import Context, Verdict
 from .explain import (Probe, backend_info, explains, fingerprint, judge, plain_context,
                       with_deviations)
-from .html import PICTURES
+from .pictures import PICTURES
 from .protocol import BackendError, BackendInfo, Case
 from .residual import STAGE_OF_FUNCTION, draw_probe, localise
 from .residual import summary as residual_summary
@@ -406,7 +406,7 @@ def run_cli(a) -> int:
         info.session.close()
     print(summary_text(result))
     if a.report:
-        from .diagnosis_page import write_diagnosis_page
+        from .html import write_diagnosis_page
 
         folder = Path(a.report)
         atomic_write_json(folder / "diagnosis.json", result)

@@ -1,5 +1,5 @@
-"""The diagnosis as HTML (DEV-02, DEV-03): a section of index.html (oracle/html.py) and, for
-``python -m oracle diagnose --report DIR``, a page of its own (``diagnosis.html``).
+"""The diagnosis as HTML (DEV-02, DEV-03): a section of index.html and, for ``python -m oracle
+diagnose --report DIR``, of a page of its own, ``diagnosis.html`` (both written by oracle/html.py).
 
 In this order, so that the author of a renderer that differs in many ways learns first where it
 differs: the stage probes' verdicts with their pictures (expected | got | difference, without
@@ -11,11 +11,8 @@ oracle/diagnose.py ``pictures=``).
 from __future__ import annotations
 
 from html import escape
-from pathlib import Path
 
-from refgs.io.atomic import atomic_write_text
-
-from .html import CSS, PICTURES
+from .pictures import PICTURES
 
 #: status colours of the stage probes' verdicts
 VERDICT_COLOURS = {"agree": "#2e7d32", "differ": "#d32f2f", "inconclusive": "#757575"}
@@ -140,17 +137,4 @@ def diagnosis_html(dg: dict) -> str:
     return "".join(parts)
 
 
-def write_diagnosis_page(result: dict, folder) -> Path:
-    """``folder``/diagnosis.html: the diagnosis of ``python -m oracle diagnose`` as a page."""
-    b = result["backend"]
-    title = f"oracle diagnosis: {b['spec'] or b['name']}"
-    page = ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
-            f"<title>{escape(title)}</title><style>{CSS}</style></head><body>\n"
-            f"<h1>{escape(title)}</h1><p>{escape(b['name'])} {escape(str(b['version']))}, profile "
-            f"{escape(b['profile'])}, {escape(b['dtype'])}; {result['duration_s']} s.</p>\n"
-            + diagnosis_html(result) + "\n</body></html>\n")
-    return atomic_write_text(Path(folder) / "diagnosis.html", page)
-
-
-__all__ = ["diagnosis_html", "named_set_html", "residual_html", "stage_probes_html",
-           "write_diagnosis_page"]
+__all__ = ["diagnosis_html", "named_set_html", "residual_html", "stage_probes_html"]

@@ -20,9 +20,9 @@ from refgs.io.atomic import atomic_write_text
 from . import tolerances as tl
 from .report import STATUS_ORDER, clause_table, machine
 from .clauses import clause_sort_key
+from .diagnosis_page import diagnosis_html
+from .pictures import PICTURES
 
-#: folder of the pictures, relative to the page
-PICTURES = "pictures"
 #: statuses that do not fail a run (runner.OK_STATUSES)
 OK = ("pass", "n/a", "not provided", "known")
 #: background colour of each status badge
@@ -190,7 +190,6 @@ def render_page(run, folder) -> str:
             + f" of {len(run.results)} checks; {run.settings.max_examples} examples per check, seed "
               f"{run.settings.seed}, {run.duration:.1f} s.</p>"]
     if run.diagnosis is not None:
-        from .diagnosis_page import diagnosis_html
         body.append(diagnosis_html(run.diagnosis))
     if failing:
         body.append("<h2>Checks that did not pass</h2>")
@@ -234,3 +233,16 @@ def write_page(run, folder) -> Path:
     """Write ``folder``/index.html and its pictures (atomic); returns the page's path."""
     folder = Path(folder)
     return atomic_write_text(folder / "index.html", render_page(run, folder))
+
+
+def write_diagnosis_page(result: dict, folder) -> Path:
+    """``folder``/diagnosis.html: the diagnosis of ``python -m oracle diagnose`` (a result of
+    oracle/diagnose.py ``diagnose``) as a page of its own, pictures in ``pictures/``."""
+    b = result["backend"]
+    title = f"oracle diagnosis: {b['spec'] or b['name']}"
+    page = ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
+            f"<title>{escape(title)}</title><style>{CSS}</style></head><body>\n"
+            f"<h1>{escape(title)}</h1><p>{escape(b['name'])} {escape(str(b['version']))}, profile "
+            f"{escape(b['profile'])}, {escape(b['dtype'])}; {result['duration_s']} s.</p>\n"
+            + diagnosis_html(result) + "\n</body></html>\n")
+    return atomic_write_text(Path(folder) / "diagnosis.html", page)

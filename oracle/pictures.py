@@ -28,6 +28,8 @@ from refgs.io.atomic import atomic_write_bytes
 
 from .protocol import get_field
 
+#: folder of the pictures, relative to the report page beside it (index.html, diagnosis.html)
+PICTURES = "pictures"
 #: colour of non-finite pixels and of panels without data
 BAD_COLOUR = "magenta"
 #: figure width per panel and height per row (inches) and resolution (dots per inch)

@@ -36,7 +36,7 @@ from . import known as kd
 from .diagnose import DEFAULT_EXAMPLES, diagnose
 from .evaluate import Context
 from .explain import Signature
-from .html import PICTURES
+from .pictures import PICTURES
 from .isolation import WorkerLost
 from .runner import record_failure, run_isolated
 

@@ -15,7 +15,7 @@ import pytest
 
 import refgs
 from oracle.diagnose import diagnose
-from oracle.diagnosis_page import write_diagnosis_page
+from oracle.html import write_diagnosis_page
 from oracle.meta.many import catalogue_sets, off_catalogue_sets, run_set, table
 from oracle.meta.offcatalogue import DEFECTS, OffCatalogue
 from oracle.residual import localise, parting_stages
