@@ -248,8 +248,8 @@ def is_test_point(t: int, every: int, iters: int) -> bool:
     """Whether the loop measures the test PSNR at the end of iteration t (TRN-07): at the
     iteration *before* each multiple of ``every`` (0: none), so that the opacity reset (TRN-06)
     and FM's reinitialisation (FM-06), which fall on multiples, never show in the curve; the
-    final iteration T is measured after the loop."""
-    return bool(every) and (t + 1) % every == 0 and t < iters
+    final iteration T is measured after the loop (so T - 1 is not, when T is a multiple)."""
+    return bool(every) and (t + 1) % every == 0 and t + 1 < iters
 
 
 def _loop(trainer: Trainer, run: RunDir, progress: bool, callback=None) -> None:

@@ -145,7 +145,8 @@ def test_compact_settings_are_checked():
 
 def test_test_points_fall_before_the_resets():
     """TRN-07: the iteration before each multiple of E, and not past T."""
-    assert [t for t in range(1, 31) if runs.is_test_point(t, 10, 30)] == [9, 19, 29]
+    assert [t for t in range(1, 31) if runs.is_test_point(t, 10, 30)] == [9, 19]   # and T after
+    assert [t for t in range(1, 36) if runs.is_test_point(t, 10, 35)] == [9, 19, 29]
     assert not any(runs.is_test_point(t, 0, 30) for t in range(1, 31))
 
 
