@@ -307,7 +307,7 @@ def test_fm06_standard_opacity_reset_at_a_reinit_iteration_happens_once(standard
     schedule when it is due at that iteration (interval 10 = the reinit interval here), else by
     the reinit -- and ends <= 0.01 with zeroed Adam moments; SH-rest moments are zeroed too."""
     import refgs.methods.flat_minima_method as mt
-    import refgs.train.trainer as tt
+    import refgs.train.strategy as ts          # the paper's strategy resets opacity (TRN-06, TRN-14)
     calls = []
 
     def counting(name, real):
@@ -317,7 +317,7 @@ def test_fm06_standard_opacity_reset_at_a_reinit_iteration_happens_once(standard
         return f
 
     monkeypatch.setattr(mt, "reset_opacity", counting("reinit", mt.reset_opacity))
-    monkeypatch.setattr(tt, "reset_opacity", counting("standard", tt.reset_opacity))
+    monkeypatch.setattr(ts, "reset_opacity", counting("standard", ts.reset_opacity))
     method = FlatMinimaMethod(SMALL)
     tr = make_trainer(method, iters=40, densify=DensifyConfig(start=1000, interval=100, until=40,
                                                               opacity_reset_interval=standard_interval))
