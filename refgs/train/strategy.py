@@ -18,11 +18,12 @@ from dataclasses import asdict, dataclass, fields
 import numpy as np
 
 from ..errors import ConfigError
+from ..types import Gaussians
 from .contribution import contributions
 from .densify import densify_and_prune, prune_rows, reset_opacity
 
 #: Parameter tensors, all replaced when rows change (no Adam step that iteration, as 3DGS).
-ALL_TENSORS = ("means", "log_scales", "quats", "opacity_logits", "sh")
+ALL_TENSORS = Gaussians.FIELDS
 
 
 @dataclass(frozen=True)
