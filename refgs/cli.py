@@ -15,6 +15,7 @@
     refgs record RUN_DIR ... [--out results/records]
     refgs compactness RUN_DIR ... [--out DIR]   (contributions and fragments, docs/compact.md)
     refgs report GRID.toml ... [--records results/records] [--update docs/results.md] [--check-equivalence]
+    refgs frontier GRID.toml [--records results/records] [--out PNG]   (quality against cost, docs/compact.md)
     refgs sweep GRID.toml --out DIR [--executor local|ray] [--workers N] [--list] ...
     refgs run-one GRID.toml --out DIR --index I
 
@@ -58,7 +59,8 @@ def _add_train(sub) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     """The parser of every ``refgs`` subcommand; ``args.handler(args, argv)`` runs one."""
-    from .analysis import bench, compactness, demo, figures, flatness, records, report, tables
+    from .analysis import (bench, compactness, demo, figures, flatness, frontier, records, report,
+                           tables)
     from .sweep import command as sweep
 
     p = _Parser(prog="refgs", description="refgs: the numpy 3DGS specification - training CLI")
@@ -92,7 +94,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     for name, module in (("bench", bench), ("compactness", compactness), ("flatness", flatness),
                          ("table", tables),
-                         ("figures", figures), ("record", records), ("report", report),
+                         ("figures", figures), ("frontier", frontier), ("record", records),
+                         ("report", report),
                          ("sweep", sweep)):
         module.add_parser(sub)
         sub.choices[name].set_defaults(handler=lambda a, _, run=module.run: run(a))
