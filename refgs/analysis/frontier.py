@@ -127,8 +127,9 @@ def plot(points: list[FrontierPoint], path, names: dict | None = None,
                 ax.grid(alpha=0.3)
                 if xkey == "gaussians":
                     ax.set_xscale("log")
+                    ax.xaxis.set_major_locator(matplotlib.ticker.LogLocator(subs=(1.0, 2.0, 5.0)))
                     ax.xaxis.set_major_formatter(thousands)
-                    ax.xaxis.set_minor_formatter(thousands)
+                    ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
                 ax.set_title(f"{scene}, {views} views", fontsize=9)
         axes[2 * g, 0].legend(fontsize=7)
     cpu_text = ", ".join(f"{marker[c]} = {c}" for c in cpus)
