@@ -54,6 +54,11 @@ def segments(config: dict, history: dict, where: str) -> list[tuple[datetime, da
             for (t0, a), b in zip(starts, bounds)]
 
 
+def loop_seconds(config: dict, history: dict, where: str) -> float:
+    """The training loop of one run in seconds: the length of its segments (module docstring)."""
+    return sum((b - a).total_seconds() for a, b in segments(config, history, where))
+
+
 def union_seconds(intervals: list[tuple[datetime, datetime]]) -> float:
     """The length in seconds of the union of (start, end) intervals."""
     total, end = 0.0, None
@@ -106,4 +111,4 @@ def cost_markdown(records_dir: str | Path, runs: list[ReportRun], groups, method
     return "\n".join([COMPUTE_HEADING, "", prose(text), "", *lines, ""])
 
 
-__all__ = ["segments", "union_seconds", "cost_markdown"]
+__all__ = ["segments", "loop_seconds", "union_seconds", "cost_markdown"]

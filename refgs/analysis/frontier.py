@@ -7,9 +7,9 @@ point a record).
 The records are those the report counts (its own grid's and its included grids', refgs.analysis
 .report), restricted to the (scene, views) of the grid's own groups and to the methods of its
 comparisons (both sides).  Per scene two rows of panels, one per metric: against the training
-loop in minutes (the sum of the record's ``iter_seconds``: setup and the final evaluation left
-out, as refgs.analysis.cost) and against the Gaussians at T.  Each record is a small point, each
-method's mean over its seeds a large one, joined to its seeds.  Times are only comparable on one
+loop in minutes (refgs.analysis.cost.loop_seconds: the sum of the record's ``iter_seconds``,
+setup and the final evaluation left out) and against the Gaussians at T.  Each record is a small
+point, each method's mean over its seeds a large one, joined to its seeds.  Times are only comparable on one
 machine: each point's marker says which CPU made it (``provenance.float_environment.numba_cpu``;
 "unrecorded" for records older than that field), and the legend lists them.
 """
@@ -23,6 +23,7 @@ import numpy as np
 from ..errors import ConfigError
 from ..io.atomic import atomic_save_figure
 from ..runs import CONFIG_FILE, HISTORY_FILE
+from .cost import loop_seconds
 from .report import all_runs
 from .report_spec import load_report
 from .report_tables import metric
@@ -70,18 +71,15 @@ def frontier_points(grid, records_dir) -> list[FrontierPoint]:
         if (r.scene, r.views) not in groups or (methods and r.method not in methods):
             continue
         folder = Path(records_dir) / r.record
-        history = read_run_json(folder / HISTORY_FILE)
-        secs = history.get("iter_seconds")
-        if not isinstance(secs, list) or not secs:
-            raise ConfigError(f"{folder / HISTORY_FILE}: no iter_seconds list")
+        config = read_run_json(folder / CONFIG_FILE)
+        loop = loop_seconds(config, read_run_json(folder / HISTORY_FILE), str(folder))
         values = {k: metric(r, k) for k, _ in FRONTIER_METRICS}
         gaussians = metric(r, "n_gaussians")
         if gaussians is None or any(v is None for v in values.values()):
             raise ConfigError(f"{folder}/metrics.json: expected n_gaussians and "
                               f"{', '.join(k for k, _ in FRONTIER_METRICS)}")
         points.append(FrontierPoint(r.record, r.scene, r.views, r.method, r.seed,
-                                    float(np.sum(secs)) / 60.0, gaussians,
-                                    record_cpu(read_run_json(folder / CONFIG_FILE)), values))
+                                    loop / 60.0, gaussians, record_cpu(config), values))
     return points
 
 
